@@ -1,0 +1,173 @@
+// `springblend blend`: load a rig from mesh files and solve one frame or a sweep locally.
+#include <fmt/format.h>
+
+#include <filesystem>
+#include <iostream>
+#include <memory>
+#include <nlohmann/json.hpp>
+#include <string>
+#include <vector>
+
+#include "commands.h"
+#include "springblend/error.h"
+#include "springblend/mesh.h"
+#include "springblend/rig.h"
+#include "springblend/solve.h"
+
+namespace springblend::cli {
+namespace {
+
+struct BlendArgs {
+  std::string rest;
+  std::vector<std::string> targets;
+  std::vector<double> weights;
+  std::string out;
+  int sweep = 0;
+  bool linear = false;
+  std::vector<int> fixed;
+  double static_tolerance = RigOptions{}.static_tolerance;
+  bool no_bending = false;
+  double tolerance = SolveOptions{}.residual_tolerance;
+  int max_iterations = SolveOptions{}.max_iterations;
+  std::string solver = "cholmod";
+  std::string hessian = "true";
+  bool no_warm_start = false;
+  bool verbose = false;
+};
+
+nlohmann::json RigJson(const RigSummary& s) {
+  nlohmann::json springs;
+  for (int k = 0; k < kSpringKindCount; ++k) springs[ToString(static_cast<SpringKind>(k))] = s.springs_by_kind[k];
+  return {{"vertices", s.vertices},
+          {"surface_vertices", s.surface_vertices},
+          {"faces", s.faces},
+          {"targets", s.targets},
+          {"springs", s.springs},
+          {"springs_by_kind", springs},
+          {"static_vertices", s.static_vertices},
+          {"user_fixed_vertices", s.user_fixed_vertices},
+          {"boundary_mode", ToString(s.boundary_mode)},
+          {"degenerate_faces", s.degenerate_faces},
+          {"boundary_edges", s.boundary_edges},
+          {"hessian_nonzeros", s.hessian_nonzeros},
+          {"precompute_ms", s.precompute_ms},
+          {"notes", s.notes}};
+}
+
+nlohmann::json FrameJson(const Rig& rig, const SolveSummary& s, int frame, const std::vector<double>& w) {
+  return {{"frame", frame},
+          {"weights", w},
+          {"vertices", rig.num_vertices()},
+          {"springs", rig.num_springs()},
+          {"converged", s.converged()},
+          {"termination", ToString(s.termination)},
+          {"message", s.message},
+          {"newton_iterations", s.newton_iterations},
+          {"factorizations", s.factorizations},
+          {"projected_factorizations", s.projected_factorizations},
+          {"residual", s.residual},
+          {"energy", s.energy},
+          {"fixed_vertices", s.fixed_vertices},
+          {"factorize_ms", s.factorize_ms},
+          {"line_search_halvings", s.line_search_halvings},
+          {"solve_ms", s.solve_ms}};
+}
+
+int RunBlend(const BlendArgs& args) {
+  RigOptions rig_options;
+  rig_options.fixed_vertices = args.fixed;
+  rig_options.static_tolerance = args.static_tolerance;
+  rig_options.bending_springs = !args.no_bending;
+  rig_options.linear_solver = LinearSolverTypeFromString(args.solver);
+
+  TriangleMesh rest = LoadMesh(args.rest);
+  std::vector<TriangleMesh> targets;
+  for (const auto& path : args.targets) targets.push_back(LoadMesh(path));
+  auto rig = Rig::Build(std::move(rest), std::move(targets), rig_options);
+  if (args.verbose) std::cerr << RigJson(rig->summary()).dump() << "\n";
+
+  SolveOptions options;
+  options.residual_tolerance = args.tolerance;
+  options.max_iterations = args.max_iterations;
+  options.warm_start = !args.no_warm_start;
+  options.linear = args.linear;
+  if (args.hessian == "projected") {
+    options.hessian = HessianMode::kProjected;
+  } else if (args.hessian == "absolute") {
+    options.hessian = HessianMode::kAbsolute;
+  } else if (args.hessian != "true") {
+    throw Error(ErrorCode::kInvalidInput, "--hessian must be 'true' or 'projected', got '" + args.hessian + "'");
+  }
+  Solver solver(rig, options);
+
+  std::vector<Frame> frames;
+  std::vector<double> weights = args.weights;
+  if (weights.empty() && rig->num_targets() == 1) weights = {1.0};
+  if (weights.empty()) {
+    throw Error(ErrorCode::kInvalidInput,
+                fmt::format("--weights is required with {} targets (one weight per target, in order)",
+                            rig->num_targets()));
+  }
+  ValidateWeights(*rig, weights);
+  namespace fs = std::filesystem;
+  if (args.sweep > 0) {
+    frames = SweepFrames(weights, args.sweep);
+    std::error_code ec;
+    fs::create_directories(args.out, ec);
+    if (ec || !fs::is_directory(args.out)) {
+      throw Error(ErrorCode::kInvalidInput, "cannot create the output directory " + args.out);
+    }
+  } else {
+    frames.push_back(Frame{weights});
+  }
+
+  bool all_converged = true;
+  Points positions;
+  for (size_t i = 0; i < frames.size(); ++i) {
+    const SolveSummary summary = solver.Solve(frames[i], &positions);
+    all_converged = all_converged && summary.converged();
+    const std::string path =
+        args.sweep > 0 ? (fs::path(args.out) / fmt::format("frame_{:04d}.obj", i)).string() : args.out;
+    WriteObj(path, positions, rig->rest().faces);
+    std::cout << FrameJson(*rig, summary, static_cast<int>(i), frames[i].weights).dump() << std::endl;
+  }
+  return all_converged ? kExitOk : kExitNotConverged;
+}
+
+}  // namespace
+
+Runner AddBlendCommand(CLI::App& app) {
+  auto args = std::make_shared<BlendArgs>();
+  CLI::App* cmd = app.add_subcommand(
+      "blend", "solve blended shapes locally: the equilibrium of the mass-spring system whose rest "
+               "lengths are blended with the weights");
+  cmd->add_option("--rest", args->rest, "rest shape (OBJ, PLY, OFF or STL)")->required();
+  cmd->add_option("--target", args->targets, "a blendshape target; repeat for more (order = weight order)")
+      ->required();
+  cmd->add_option("--weights", args->weights,
+                  "one weight per target, comma separated; the rest shape gets 1 - sum (default 1 for a "
+                  "single target). With --sweep: the end of the sweep")
+      ->delimiter(',');
+  cmd->add_option("--out", args->out, "output OBJ file, or directory with --sweep")->required();
+  cmd->add_option("--sweep", args->sweep,
+                  "solve N frames with alpha = 0 .. 1 times the weights, warm-started, into "
+                  "OUT/frame_0000.obj ...")
+      ->check(CLI::Range(1, 100000));
+  cmd->add_flag("--linear", args->linear, "output the plain linear blendshape instead (for comparison)");
+  cmd->add_option("--fixed", args->fixed, "vertex indices (0-based) held as boundary conditions")
+      ->delimiter(',');
+  cmd->add_option("--static-tolerance", args->static_tolerance,
+                  "vertices moving less than this fraction of the diagonal in every target are fixed; "
+                  "negative disables");
+  cmd->add_flag("--no-bending", args->no_bending, "omit bending springs");
+  cmd->add_option("--tolerance", args->tolerance, "residual tolerance (largest force, strain units)");
+  cmd->add_option("--max-iterations", args->max_iterations, "Newton iterations per frame");
+  cmd->add_option("--solver", args->solver, "sparse Cholesky backend: cholmod or eigen");
+  cmd->add_option("--hessian", args->hessian,
+                  "true (true Hessian, projected when not positive definite) or projected");
+  cmd->add_flag("--no-warm-start", args->no_warm_start, "start every frame from the linear blendshape");
+  cmd->add_flag("-v,--verbose", args->verbose, "print the rig summary as JSON on stderr");
+  return [args] { return RunBlend(*args); };
+}
+
+}  // namespace springblend::cli

@@ -1,0 +1,20 @@
+// Subcommands of the springblend CLI. Each registers its options on the app and returns the function
+// that runs it (after parsing); the function returns the process exit code.
+#pragma once
+
+#include <CLI/CLI.hpp>
+#include <functional>
+
+namespace springblend::cli {
+
+// Exit codes shared by every subcommand.
+inline constexpr int kExitOk = 0;
+inline constexpr int kExitNotConverged = 1;  // ran, but some frame did not converge
+inline constexpr int kExitBadInput = 2;      // bad arguments, files or weights (message on stderr)
+inline constexpr int kExitInternal = 3;
+
+using Runner = std::function<int()>;
+
+Runner AddBlendCommand(CLI::App& app);
+
+}  // namespace springblend::cli

@@ -1,0 +1,28 @@
+// Errors raised by the solver library. One enum says what kind of problem it is, so every front end
+// (the CLI's exit codes, the server's gRPC status mapping) decides from the kind, never from the text.
+#pragma once
+
+#include <stdexcept>
+#include <string>
+
+namespace springblend {
+
+enum class ErrorCode {
+  kInvalidInput,  // a mesh, weight vector or option that cannot be used; the message names the culprit
+  kNotFound,      // a named thing (file, target, character) does not exist
+  kNumerical,     // the solve broke down (non-finite values, a factorization that failed)
+  kInternal,      // a bug in springblend
+};
+
+const char* ToString(ErrorCode code);
+
+class Error : public std::runtime_error {
+ public:
+  Error(ErrorCode code, const std::string& message) : std::runtime_error(message), code_(code) {}
+  ErrorCode code() const { return code_; }
+
+ private:
+  ErrorCode code_;
+};
+
+}  // namespace springblend

@@ -1,0 +1,35 @@
+// Triangle meshes as the solver sees them: a vertex array and a face array, in the order of the file.
+#pragma once
+
+#include <Eigen/Core>
+#include <string>
+#include <vector>
+
+namespace springblend {
+
+using Points = Eigen::Matrix<double, Eigen::Dynamic, 3, Eigen::RowMajor>;  // #V by 3
+using Faces = Eigen::Matrix<int, Eigen::Dynamic, 3, Eigen::RowMajor>;     // #F by 3, 0-based
+
+struct TriangleMesh {
+  std::string name;    // the target's name (file stem for loaded meshes); used in messages
+  std::string source;  // where it came from (a path, or "memory"); used in messages
+  Points vertices;
+  Faces faces;
+  int polygons_split = 0;  // polygons with more than three corners that loading fan-triangulated
+};
+
+// Load OBJ, PLY, OFF or STL (by extension) through OpenMesh, keeping the file's vertex order exactly;
+// polygons are fan-triangulated. Throws Error naming the file and the offending element.
+TriangleMesh LoadMesh(const std::string& path);
+
+// Write an OBJ file (v and f lines only) with positions at full double precision.
+void WriteObj(const std::string& path, const Points& vertices, const Faces& faces);
+
+// Checks a single mesh: not empty, every face index in range, no repeated corner, finite coordinates.
+// Throws Error naming the source and the vertex or face at fault.
+void ValidateMesh(const TriangleMesh& mesh);
+
+// Axis-aligned bounding box diagonal length.
+double BoundingBoxDiagonal(const Points& vertices);
+
+}  // namespace springblend

@@ -1,0 +1,115 @@
+// The per-frame solve: blend the rest lengths with a weight vector and find the equilibrium of the
+// blended mass-spring system by Newton's method (paper sections 3.2-3.3). A Solver holds the state one
+// thread reuses from frame to frame: the current positions (the warm start) and the numeric factorization.
+#pragma once
+
+#include <chrono>
+#include <memory>
+#include <string>
+#include <vector>
+
+#include "springblend/mesh.h"
+#include "springblend/rig.h"
+
+namespace springblend {
+
+// One frame's request. weights has one entry per target, in the rig's target order; the rest shape takes
+// the remainder 1 - sum(weights). That covers the paper's two-shape alpha ({alpha}), a convex combination
+// of many shapes, and the delta weights of face rigs. Weights outside [0, 1] are allowed.
+struct Frame {
+  std::vector<double> weights;
+};
+
+enum class HessianMode {
+  kTrueWithProjectedFallback,  // use the true Hessian while its Cholesky succeeds, else the projected one
+  kProjected,                  // always clamp each spring's transverse term at zero (always SPD)
+  kAbsolute,                   // replace a negative transverse term by its absolute value (always SPD)
+};
+const char* ToString(HessianMode mode);
+
+struct SolveOptions {
+  // Converged when the largest force on any free degree of freedom is at most this. Forces are in units of
+  // strain (k = 1 / rest length), so the tolerance does not depend on the mesh's scale. Range (0, 1).
+  double residual_tolerance = 1e-9;
+  // A Newton step shorter than this fraction of the bounding-box diagonal counts as no progress.
+  double step_tolerance = 1e-14;
+  // Newton iterations per frame before giving up (the frame then reports kMaxIterations). Range [1, 10000].
+  int max_iterations = 200;
+  // Backtracking line search halvings per Newton step. Range [1, 60].
+  int max_line_search_steps = 40;
+  HessianMode hessian = HessianMode::kTrueWithProjectedFallback;
+  // Start each frame from the previous frame's solution (the paper's protocol). When false, or for the
+  // first frame, the solve starts from the linear blendshape.
+  bool warm_start = true;
+  // The solution of a frame is the equilibrium; with `linear` the solver returns the plain linear
+  // blendshape instead (for comparison) and does no Newton iteration.
+  bool linear = false;
+
+  void Validate() const;  // throws Error(kInvalidInput) naming the field
+};
+
+enum class Termination {
+  kConverged,      // residual below tolerance
+  kMaxIterations,  // iteration cap reached; positions are the last iterate
+  kStalled,        // the line search could not lower the energy any more before the residual got small
+  kNumericalFailure,  // a factorization failed or a value became non-finite; positions are the start
+  kLinear,         // linear blendshape requested: no solve
+};
+const char* ToString(Termination termination);
+
+struct SolveSummary {
+  Termination termination = Termination::kNumericalFailure;
+  std::string message;
+  int newton_iterations = 0;
+  int factorizations = 0;
+  int projected_factorizations = 0;  // factorizations that used the projected Hessian
+  int line_search_halvings = 0;
+  double initial_residual = 0.0;
+  double residual = 0.0;  // final largest force on a free degree of freedom (strain units)
+  double energy = 0.0;    // final spring energy
+  int fixed_vertices = 0;
+  double solve_ms = 0.0;
+  double factorize_ms = 0.0;
+
+  bool converged() const {
+    return termination == Termination::kConverged || termination == Termination::kLinear;
+  }
+};
+
+// Checks a weight vector against the rig: right length, finite entries. Throws Error naming the entry.
+void ValidateWeights(const Rig& rig, const std::vector<double>& weights);
+
+// The linear blendshape: rest + sum_t w_t (target_t - rest), #V by 3.
+Points LinearBlend(const Rig& rig, const std::vector<double>& weights);
+
+// Blended rest lengths r̄_q = r_q^0 + sum_t w_t (r_q^t - r_q^0), clamped from below (see RigOptions).
+void BlendRestLengths(const Rig& rig, const std::vector<double>& weights, std::vector<double>* blended);
+
+class Solver {
+ public:
+  explicit Solver(std::shared_ptr<const Rig> rig, SolveOptions options = {});
+  ~Solver();
+  Solver(Solver&&) noexcept;
+  Solver& operator=(Solver&&) noexcept;
+
+  // Solves one frame and writes the surface positions (#surface vertices by 3) to *positions. Bad input
+  // throws Error; a solve that does not converge returns a summary that says why.
+  SolveSummary Solve(const Frame& frame, Points* positions);
+
+  // Forget the warm start: the next frame starts from the linear blendshape.
+  void Reset();
+
+  const Rig& rig() const;
+  const SolveOptions& options() const;
+  void set_options(const SolveOptions& options);
+
+ private:
+  class Impl;
+  std::unique_ptr<Impl> impl_;
+};
+
+// The paper's protocol: weights(alpha) for alpha = i / (steps - 1), i = 0..steps-1 (so the sequence starts
+// at the rest shape and ends at `end`). Each frame's weights are alpha * end.
+std::vector<Frame> SweepFrames(const std::vector<double>& end, int steps);
+
+}  // namespace springblend

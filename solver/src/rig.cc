@@ -1,0 +1,382 @@
+#include "springblend/rig.h"
+
+#include <Eigen/Geometry>
+
+#include <fmt/format.h>
+
+#include <algorithm>
+#include <chrono>
+#include <cmath>
+#include <numeric>
+#include <unordered_map>
+#include <unordered_set>
+
+#include "hessian_pattern.h"
+#include "sparse_cholesky.h"
+#include "springblend/error.h"
+
+namespace springblend {
+
+const char* ToString(ErrorCode code) {
+  switch (code) {
+    case ErrorCode::kInvalidInput: return "invalid input";
+    case ErrorCode::kNotFound: return "not found";
+    case ErrorCode::kNumerical: return "numerical failure";
+    case ErrorCode::kInternal: return "internal error";
+  }
+  return "unknown";
+}
+
+const char* ToString(SpringKind kind) {
+  switch (kind) {
+    case SpringKind::kStructure: return "structure";
+    case SpringKind::kBending: return "bending";
+  }
+  return "unknown";
+}
+
+const char* ToString(LinearSolverType type) {
+  switch (type) {
+    case LinearSolverType::kCholmodSupernodal: return "cholmod";
+    case LinearSolverType::kEigenSimplicial: return "eigen";
+  }
+  return "unknown";
+}
+
+LinearSolverType LinearSolverTypeFromString(const std::string& name) {
+  if (name == "cholmod") return LinearSolverType::kCholmodSupernodal;
+  if (name == "eigen") return LinearSolverType::kEigenSimplicial;
+  throw Error(ErrorCode::kInvalidInput, "unknown linear solver '" + name + "' (use cholmod or eigen)");
+}
+
+const char* ToString(BoundaryMode mode) {
+  switch (mode) {
+    case BoundaryMode::kFixedVertices: return "fixed_vertices";
+    case BoundaryMode::kPartiallyFixed: return "partially_fixed";
+    case BoundaryMode::kFloating: return "floating";
+  }
+  return "unknown";
+}
+
+void RigOptions::Validate() const {
+  auto in_range = [](double v, double lo, double hi, const char* field) {
+    if (!(v >= lo && v <= hi)) {
+      throw Error(ErrorCode::kInvalidInput,
+                  fmt::format("rig option {} = {} is outside [{}, {}]", field, v, lo, hi));
+    }
+  };
+  if (!std::isfinite(static_tolerance)) {
+    throw Error(ErrorCode::kInvalidInput, "rig option static_tolerance must be finite");
+  }
+  in_range(structure_stiffness, 1e-6, 1e6, "structure_stiffness");
+  in_range(bending_stiffness, 0.0, 1e6, "bending_stiffness");
+  in_range(min_stiffness_length, 0.0, 1.0, "min_stiffness_length");
+  in_range(min_rest_length_fraction, 1e-9, 0.99, "min_rest_length_fraction");
+}
+
+Rig::~Rig() = default;
+
+std::vector<std::string> Rig::target_names() const {
+  std::vector<std::string> names;
+  names.reserve(targets_.size());
+  for (const auto& t : targets_) names.push_back(t.name);
+  return names;
+}
+
+class RigBuilder {
+ public:
+  static std::shared_ptr<const Rig> Build(TriangleMesh rest, std::vector<TriangleMesh> targets,
+                                          const RigOptions& options);
+
+ private:
+  static void CheckTargets(const TriangleMesh& rest, const std::vector<TriangleMesh>& targets);
+  static void BuildSprings(Rig& rig);
+  static void FindDegenerateFaces(Rig& rig);
+  static void BuildBoundary(Rig& rig);
+};
+
+namespace {
+
+std::uint64_t PairKey(int a, int b) {
+  if (a > b) std::swap(a, b);
+  return (static_cast<std::uint64_t>(static_cast<std::uint32_t>(a)) << 32) |
+         static_cast<std::uint32_t>(b);
+}
+
+double Elapsed(std::chrono::steady_clock::time_point since) {
+  return std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - since).count();
+}
+
+}  // namespace
+
+void RigBuilder::CheckTargets(const TriangleMesh& rest, const std::vector<TriangleMesh>& targets) {
+  ValidateMesh(rest);
+  if (targets.empty()) {
+    throw Error(ErrorCode::kInvalidInput,
+                "a rig needs at least one target besides the rest shape " + rest.source);
+  }
+  std::unordered_set<std::string> names;
+  for (const auto& t : targets) {
+    ValidateMesh(t);
+    if (!names.insert(t.name).second) {
+      throw Error(ErrorCode::kInvalidInput,
+                  fmt::format("{}: the target name '{}' is used twice; target names must be unique",
+                              t.source, t.name));
+    }
+    if (t.vertices.rows() != rest.vertices.rows()) {
+      throw Error(ErrorCode::kInvalidInput,
+                  fmt::format("{}: target has {} vertices but the rest shape {} has {}", t.source,
+                              t.vertices.rows(), rest.source, rest.vertices.rows()));
+    }
+    if (t.faces.rows() != rest.faces.rows()) {
+      throw Error(ErrorCode::kInvalidInput,
+                  fmt::format("{}: target has {} faces but the rest shape {} has {}", t.source,
+                              t.faces.rows(), rest.source, rest.faces.rows()));
+    }
+    for (Eigen::Index f = 0; f < rest.faces.rows(); ++f) {
+      if (t.faces.row(f) != rest.faces.row(f)) {
+        throw Error(ErrorCode::kInvalidInput,
+                    fmt::format("{}: face {} is ({} {} {}) but in the rest shape {} it is ({} {} {}); "
+                                "every target must have the rest shape's faces",
+                                t.source, f, t.faces(f, 0), t.faces(f, 1), t.faces(f, 2), rest.source,
+                                rest.faces(f, 0), rest.faces(f, 1), rest.faces(f, 2)));
+      }
+    }
+  }
+}
+
+void RigBuilder::BuildSprings(Rig& rig) {
+  const Faces& faces = rig.rest_.faces;
+  const int n = static_cast<int>(rig.rest_.vertices.rows());
+  // Edge -> the corners opposite it, from every face that has it.
+  struct EdgeFaces {
+    int opposite[2] = {-1, -1};
+    int count = 0;
+  };
+  std::unordered_map<std::uint64_t, EdgeFaces> edges;
+  edges.reserve(static_cast<size_t>(faces.rows()) * 2);
+  std::vector<std::uint64_t> edge_order;  // first-seen order keeps the spring order deterministic
+  edge_order.reserve(static_cast<size_t>(faces.rows()) * 2);
+  for (Eigen::Index f = 0; f < faces.rows(); ++f) {
+    for (int c = 0; c < 3; ++c) {
+      const std::uint64_t key = PairKey(faces(f, c), faces(f, (c + 1) % 3));
+      auto [it, inserted] = edges.try_emplace(key);
+      if (inserted) edge_order.push_back(key);
+      EdgeFaces& e = it->second;
+      if (e.count < 2) e.opposite[e.count] = faces(f, (c + 2) % 3);
+      ++e.count;
+    }
+  }
+
+  std::unordered_set<std::uint64_t> springs;
+  springs.reserve(edge_order.size() * 2);
+  auto add = [&](std::uint64_t key, SpringKind kind) {
+    if (!springs.insert(key).second) return;
+    rig.spring_a_.push_back(static_cast<int>(key >> 32));
+    rig.spring_b_.push_back(static_cast<int>(key & 0xffffffffu));
+    rig.spring_kind_.push_back(kind);
+  };
+  for (std::uint64_t key : edge_order) add(key, SpringKind::kStructure);
+  RigSummary& s = rig.summary_;
+  for (std::uint64_t key : edge_order) {
+    const EdgeFaces& e = edges[key];
+    if (e.count == 1) ++s.boundary_edges;
+    if (e.count > 2) ++s.nonmanifold_edges;
+    if (rig.options_.bending_springs && e.count == 2 && e.opposite[0] != e.opposite[1]) {
+      add(PairKey(e.opposite[0], e.opposite[1]), SpringKind::kBending);
+    }
+  }
+  if (s.nonmanifold_edges > 0) {
+    s.notes.push_back(fmt::format("{} non-manifold edges (more than two faces): no bending spring "
+                                  "across them",
+                                  s.nonmanifold_edges));
+  }
+
+  const int m = static_cast<int>(rig.spring_a_.size());
+  for (int q = 0; q < m; ++q) ++s.springs_by_kind[static_cast<int>(rig.spring_kind_[q])];
+  s.springs = m;
+
+  // Rest lengths per shape.
+  auto lengths = [&](const Points& x, std::vector<double>& out) {
+    out.resize(m);
+    for (int q = 0; q < m; ++q) out[q] = (x.row(rig.spring_a_[q]) - x.row(rig.spring_b_[q])).norm();
+  };
+  lengths(rig.rest_.vertices, rig.rest_length0_);
+  s.mean_rest_length =
+      std::accumulate(rig.rest_length0_.begin(), rig.rest_length0_.end(), 0.0) / std::max(m, 1);
+  const double unchanged = 1e-12 * s.mean_rest_length;
+  rig.rest_length_delta_.resize(rig.targets_.size());
+  rig.target_changes_lengths_.assign(rig.targets_.size(), 0);
+  for (size_t t = 0; t < rig.targets_.size(); ++t) {
+    std::vector<double>& d = rig.rest_length_delta_[t];
+    lengths(rig.targets_[t].vertices, d);
+    for (int q = 0; q < m; ++q) {
+      d[q] -= rig.rest_length0_[q];
+      if (std::abs(d[q]) > unchanged) rig.target_changes_lengths_[t] = 1;
+    }
+  }
+
+  // Incident springs per vertex.
+  rig.vertex_spring_offsets_.assign(n + 1, 0);
+  for (int q = 0; q < m; ++q) {
+    ++rig.vertex_spring_offsets_[rig.spring_a_[q] + 1];
+    ++rig.vertex_spring_offsets_[rig.spring_b_[q] + 1];
+  }
+  for (int v = 0; v < n; ++v) rig.vertex_spring_offsets_[v + 1] += rig.vertex_spring_offsets_[v];
+  rig.vertex_springs_.resize(2 * static_cast<size_t>(m));
+  std::vector<int> fill(rig.vertex_spring_offsets_.begin(), rig.vertex_spring_offsets_.end() - 1);
+  for (int q = 0; q < m; ++q) {
+    rig.vertex_springs_[fill[rig.spring_a_[q]]++] = q;
+    rig.vertex_springs_[fill[rig.spring_b_[q]]++] = q;
+  }
+}
+
+void RigBuilder::FindDegenerateFaces(Rig& rig) {
+  const Faces& faces = rig.rest_.faces;
+  const double diag = rig.summary_.bounding_box_diagonal;
+  const double min_area2 = 1e-24 * diag * diag * diag * diag;  // (1e-12 diag^2)^2
+  auto degenerate = [&](const Points& x, Eigen::Index f) {
+    const Eigen::RowVector3d e1 = x.row(faces(f, 1)) - x.row(faces(f, 0));
+    const Eigen::RowVector3d e2 = x.row(faces(f, 2)) - x.row(faces(f, 0));
+    return e1.cross(e2).squaredNorm() <= min_area2;
+  };
+  RigSummary& s = rig.summary_;
+  for (Eigen::Index f = 0; f < faces.rows(); ++f) {
+    bool bad = degenerate(rig.rest_.vertices, f);
+    for (size_t t = 0; t < rig.targets_.size() && !bad; ++t) bad = degenerate(rig.targets_[t].vertices, f);
+    if (bad) {
+      if (s.degenerate_faces == 0) s.first_degenerate_face = static_cast<int>(f);
+      ++s.degenerate_faces;
+    }
+  }
+  if (s.degenerate_faces > 0) {
+    s.notes.push_back(fmt::format("{} degenerate (zero-area) faces in some shape, first face {}; their "
+                                  "springs are kept",
+                                  s.degenerate_faces, s.first_degenerate_face));
+  }
+}
+
+void RigBuilder::BuildBoundary(Rig& rig) {
+  RigSummary& s = rig.summary_;
+  const Points& rest = rig.rest_.vertices;
+  const int n = static_cast<int>(rest.rows());
+  std::vector<char> fixed(n, 0);
+  if (rig.options_.static_tolerance >= 0.0) {
+    const double tol = rig.options_.static_tolerance * s.bounding_box_diagonal;
+    for (int v = 0; v < n; ++v) {
+      bool still = true;
+      for (size_t t = 0; t < rig.targets_.size() && still; ++t) {
+        still = (rig.targets_[t].vertices.row(v) - rest.row(v)).norm() <= tol;
+      }
+      if (still) {
+        fixed[v] = 1;
+        ++s.static_vertices;
+      }
+    }
+  }
+  for (size_t i = 0; i < rig.options_.fixed_vertices.size(); ++i) {
+    const int v = rig.options_.fixed_vertices[i];
+    if (v < 0 || v >= n) {
+      throw Error(ErrorCode::kInvalidInput,
+                  fmt::format("fixed_vertices[{}] = {} is not a vertex of {} (it has {} vertices)", i, v,
+                              rig.rest_.source, n));
+    }
+    if (!fixed[v]) ++s.user_fixed_vertices;
+    fixed[v] = 1;
+  }
+  for (int v = 0; v < n; ++v) {
+    if (fixed[v]) rig.fixed_vertices_.push_back(v);
+  }
+
+  // Three points spanning a set: the first, the farthest from it, the farthest from their line.
+  auto span = [&](const std::vector<int>& ids, int first) {
+    std::array<int, 3> g = {first, -1, -1};
+    double best = -1.0;
+    for (int v : ids) {
+      const double d = (rest.row(v) - rest.row(g[0])).squaredNorm();
+      if (d > best) best = d, g[1] = v;
+    }
+    const Eigen::RowVector3d axis = (rest.row(g[1]) - rest.row(g[0])).normalized();
+    best = -1.0;
+    for (int v : ids) {
+      const Eigen::RowVector3d r = rest.row(v) - rest.row(g[0]);
+      const double d = (r - r.dot(axis) * axis).squaredNorm();
+      if (d > best) best = d, g[2] = v;
+    }
+    return std::make_pair(g, std::sqrt(std::max(best, 0.0)));
+  };
+
+  const std::vector<int>& ids = rig.fixed_vertices_;
+  if (ids.empty()) {
+    s.boundary_mode = BoundaryMode::kFloating;
+    std::vector<int> all(n);
+    std::iota(all.begin(), all.end(), 0);
+    const Eigen::RowVector3d centroid = rest.colwise().mean();
+    int nearest = 0;
+    for (int v = 1; v < n; ++v) {
+      if ((rest.row(v) - centroid).squaredNorm() < (rest.row(nearest) - centroid).squaredNorm()) nearest = v;
+    }
+    auto [gauge, off_line] = span(all, nearest);
+    if (off_line <= 1e-9 * s.bounding_box_diagonal) {
+      throw Error(ErrorCode::kInvalidInput,
+                  rig.rest_.source + ": all vertices are collinear; the rest shape spans no plane");
+    }
+    rig.gauge_ = gauge;
+    s.notes.push_back(fmt::format(
+        "no boundary condition: solved in the frame of vertices {}, {}, {} (a 3-2-1 gauge that adds no "
+        "force) and rigidly aligned onto the linear blendshape",
+        gauge[0], gauge[1], gauge[2]));
+  } else {
+    auto [gauge, off_line] = span(ids, ids.front());
+    if (ids.size() >= 3 && off_line > 1e-6 * s.bounding_box_diagonal) {
+      s.boundary_mode = BoundaryMode::kFixedVertices;
+    } else {
+      s.boundary_mode = BoundaryMode::kPartiallyFixed;
+      s.notes.push_back(fmt::format(
+          "only {} fixed vertices (or all on one line): a rotation about them is free and keeps the "
+          "orientation the solve starts from",
+          ids.size()));
+    }
+  }
+}
+
+std::shared_ptr<const Rig> RigBuilder::Build(TriangleMesh rest, std::vector<TriangleMesh> targets,
+                                             const RigOptions& options) {
+  const auto start = std::chrono::steady_clock::now();
+  options.Validate();
+  CheckTargets(rest, targets);
+
+  std::shared_ptr<Rig> rig(new Rig());
+  rig->options_ = options;
+  rig->rest_ = std::move(rest);
+  rig->targets_ = std::move(targets);
+  RigSummary& s = rig->summary_;
+  s.surface_vertices = static_cast<int>(rig->rest_.vertices.rows());
+  s.vertices = s.surface_vertices;
+  s.faces = static_cast<int>(rig->rest_.faces.rows());
+  s.targets = static_cast<int>(rig->targets_.size());
+  s.polygons_split = rig->rest_.polygons_split;
+  s.bounding_box_diagonal = BoundingBoxDiagonal(rig->rest_.vertices);
+  if (!(s.bounding_box_diagonal > 0.0)) {
+    throw Error(ErrorCode::kInvalidInput, rig->rest_.source + ": all vertices coincide");
+  }
+
+  BuildSprings(*rig);
+  FindDegenerateFaces(*rig);
+  BuildBoundary(*rig);
+
+  rig->pattern_ = std::make_unique<internal::HessianPattern>(
+      internal::HessianPattern::Build(s.vertices, rig->spring_a_, rig->spring_b_));
+  s.hessian_nonzeros = static_cast<std::int64_t>(rig->pattern_->matrix.row_indices.size());
+  rig->cholesky_ = internal::SparseCholesky::Create(options.linear_solver);
+  rig->cholesky_->Analyze(rig->pattern_->matrix);
+  s.precompute_ms = Elapsed(start);
+  return rig;
+}
+
+std::shared_ptr<const Rig> Rig::Build(TriangleMesh rest, std::vector<TriangleMesh> targets,
+                                      const RigOptions& options) {
+  return RigBuilder::Build(std::move(rest), std::move(targets), options);
+}
+
+}  // namespace springblend

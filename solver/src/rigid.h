@@ -1,0 +1,19 @@
+// Rigid transforms used by the solve: the canonical gauge frame and Kabsch alignment.
+#pragma once
+
+#include <Eigen/Core>
+#include <array>
+
+#include "springblend/mesh.h"
+
+namespace springblend::internal {
+
+// Moves the stacked positions x (3n) rigidly so that vertex g[0] is at the origin, g[1] on the +x axis
+// and g[2] in the xy plane (y >= 0). Returns false if the three are (nearly) collinear.
+bool ToCanonicalFrame(const std::array<int, 3>& g, Eigen::VectorXd* x);
+
+// Replaces *points by R * points + t, with the proper rotation R and translation t that best match
+// `reference` in the least-squares sense (Kabsch).
+void AlignRigidly(const Points& reference, Points* points);
+
+}  // namespace springblend::internal

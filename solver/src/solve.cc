@@ -1,0 +1,465 @@
+#include "springblend/solve.h"
+
+#include <fmt/format.h>
+#include <tbb/blocked_range.h>
+#include <tbb/parallel_for.h>
+#include <tbb/parallel_reduce.h>
+
+#include <Eigen/Dense>
+#include <algorithm>
+#include <cmath>
+#include <limits>
+
+#include "hessian_pattern.h"
+#include "rigid.h"
+#include "sparse_cholesky.h"
+#include "springblend/error.h"
+
+namespace springblend {
+
+const char* ToString(HessianMode mode) {
+  switch (mode) {
+    case HessianMode::kTrueWithProjectedFallback: return "true_with_projected_fallback";
+    case HessianMode::kProjected: return "projected";
+    case HessianMode::kAbsolute: return "absolute";
+  }
+  return "unknown";
+}
+
+const char* ToString(Termination termination) {
+  switch (termination) {
+    case Termination::kConverged: return "converged";
+    case Termination::kMaxIterations: return "max_iterations";
+    case Termination::kStalled: return "stalled";
+    case Termination::kNumericalFailure: return "numerical_failure";
+    case Termination::kLinear: return "linear";
+  }
+  return "unknown";
+}
+
+void SolveOptions::Validate() const {
+  auto fail = [](const std::string& what) { throw Error(ErrorCode::kInvalidInput, what); };
+  if (!(residual_tolerance > 0.0 && residual_tolerance < 1.0)) {
+    fail(fmt::format("solve option residual_tolerance = {} is outside (0, 1)", residual_tolerance));
+  }
+  if (!(step_tolerance >= 0.0 && step_tolerance < 1.0)) {
+    fail(fmt::format("solve option step_tolerance = {} is outside [0, 1)", step_tolerance));
+  }
+  if (max_iterations < 1 || max_iterations > 10000) {
+    fail(fmt::format("solve option max_iterations = {} is outside [1, 10000]", max_iterations));
+  }
+  if (max_line_search_steps < 1 || max_line_search_steps > 60) {
+    fail(fmt::format("solve option max_line_search_steps = {} is outside [1, 60]",
+                     max_line_search_steps));
+  }
+}
+
+void ValidateWeights(const Rig& rig, const std::vector<double>& weights) {
+  if (static_cast<int>(weights.size()) != rig.num_targets()) {
+    throw Error(ErrorCode::kInvalidInput,
+                fmt::format("weights has {} entries but the rig has {} targets ({})", weights.size(),
+                            rig.num_targets(), fmt::join(rig.target_names(), ", ")));
+  }
+  for (size_t t = 0; t < weights.size(); ++t) {
+    if (!std::isfinite(weights[t])) {
+      throw Error(ErrorCode::kInvalidInput,
+                  fmt::format("weights[{}] (target '{}') is not finite ({})", t, rig.target(static_cast<int>(t)).name,
+                              weights[t]));
+    }
+  }
+}
+
+Points LinearBlend(const Rig& rig, const std::vector<double>& weights) {
+  ValidateWeights(rig, weights);
+  const Points& rest = rig.rest().vertices;
+  Points out = rest;
+  for (int t = 0; t < rig.num_targets(); ++t) {
+    if (weights[t] != 0.0) out += weights[t] * (rig.target(t).vertices - rest);
+  }
+  return out;
+}
+
+void BlendRestLengths(const Rig& rig, const std::vector<double>& weights, std::vector<double>* blended) {
+  ValidateWeights(rig, weights);
+  const std::vector<double>& r0 = rig.rest_lengths();
+  const int m = rig.num_springs();
+  blended->assign(r0.begin(), r0.end());
+  double* out = blended->data();
+  for (int t = 0; t < rig.num_targets(); ++t) {
+    const double w = weights[t];
+    if (w == 0.0 || !rig.target_changes_lengths(t)) continue;
+    const double* d = rig.rest_length_delta(t).data();
+    for (int q = 0; q < m; ++q) out[q] += w * d[q];
+  }
+  const double floor = rig.options().min_rest_length_fraction * rig.summary().mean_rest_length;
+  for (int q = 0; q < m; ++q) out[q] = std::max(out[q], floor);
+}
+
+std::vector<Frame> SweepFrames(const std::vector<double>& end, int steps) {
+  if (steps < 1) throw Error(ErrorCode::kInvalidInput, fmt::format("sweep needs at least 1 step, got {}", steps));
+  std::vector<Frame> frames(steps);
+  for (int i = 0; i < steps; ++i) {
+    const double alpha = steps == 1 ? 1.0 : static_cast<double>(i) / (steps - 1);
+    frames[i].weights.resize(end.size());
+    for (size_t t = 0; t < end.size(); ++t) frames[i].weights[t] = alpha * end[t];
+  }
+  return frames;
+}
+
+namespace {
+
+constexpr size_t kGrain = 2048;
+
+double Elapsed(std::chrono::steady_clock::time_point since) {
+  return std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - since).count();
+}
+
+}  // namespace
+
+class Solver::Impl {
+ public:
+  Impl(std::shared_ptr<const Rig> rig, SolveOptions options)
+      : rig_(std::move(rig)), options_(std::move(options)) {
+    options_.Validate();
+    cholesky_ = rig_->analyzed_cholesky().Clone();
+    const int n = rig_->num_vertices();
+    const int m = rig_->num_springs();
+    values_.assign(rig_->hessian_pattern().matrix.row_indices.size(), 0.0);
+    spring_hessian_.resize(static_cast<size_t>(6) * m);
+    spring_force_.resize(static_cast<size_t>(3) * m);
+    stiffness_.resize(m);
+    force_.resize(3 * n);
+    step_.resize(3 * n);
+    trial_.resize(3 * n);
+    fixed_dof_.assign(3 * n, 0);
+  }
+
+  SolveSummary Solve(const Frame& frame, Points* positions);
+  void Reset() { has_previous_ = false; }
+
+  std::shared_ptr<const Rig> rig_;
+  SolveOptions options_;
+
+ private:
+  void PrepareFrame(const std::vector<double>& weights);
+  // Spring forces and, when `values` is set, the Hessian's values with Dirichlet rows and columns
+  // replaced by the identity. Returns the largest force on a free degree of freedom.
+  double Assemble(const Eigen::VectorXd& x, double negative_scale, bool hessian);
+  double Energy(const Eigen::VectorXd& x) const;
+
+  std::unique_ptr<internal::SparseCholesky> cholesky_;
+  std::vector<double> rest_length_;  // r̄ for this frame
+  std::vector<double> stiffness_;    // k_q for this frame
+  std::vector<double> values_;
+  std::vector<double> spring_hessian_;  // per spring: upper triangle of H_q (6)
+  std::vector<double> spring_force_;    // per spring: force on endpoint a (3)
+  std::vector<char> fixed_dof_;
+  double diagonal_shift_ = 0.0;
+  bool absolute_projection_ = false;
+
+  Eigen::VectorXd x_, force_, step_, trial_;
+  Points previous_;
+  bool has_previous_ = false;
+};
+
+void Solver::Impl::PrepareFrame(const std::vector<double>& weights) {
+  const Rig& rig = *rig_;
+  BlendRestLengths(rig, weights, &rest_length_);
+  const double floor = rig.options().min_stiffness_length * rig.summary().mean_rest_length;
+  const double kind_stiffness[kSpringKindCount] = {rig.options().structure_stiffness,
+                                                   rig.options().bending_stiffness};
+  const auto& kinds = rig.spring_kind();
+  for (int q = 0; q < rig.num_springs(); ++q) {
+    stiffness_[q] = kind_stiffness[static_cast<int>(kinds[q])] / std::max(rest_length_[q], floor);
+  }
+}
+
+double Solver::Impl::Assemble(const Eigen::VectorXd& x, double negative_scale, bool hessian) {
+  const Rig& rig = *rig_;
+  const int m = rig.num_springs();
+  const int n = rig.num_vertices();
+  const int* a = rig.spring_a().data();
+  const int* b = rig.spring_b().data();
+  const double tiny = 1e-12 * rig.summary().mean_rest_length;
+  const auto& pattern = rig.hessian_pattern();
+  const char* fixed = fixed_dof_.data();
+  double* values = values_.data();
+
+  tbb::parallel_for(tbb::blocked_range<int>(0, m, kGrain), [&](const tbb::blocked_range<int>& range) {
+    for (int q = range.begin(); q != range.end(); ++q) {
+      const Eigen::Vector3d d = x.segment<3>(3 * a[q]) - x.segment<3>(3 * b[q]);
+      const double l = d.norm();
+      const double k = stiffness_[q];
+      double* hq = &spring_hessian_[6 * static_cast<size_t>(q)];
+      double* fq = &spring_force_[3 * static_cast<size_t>(q)];
+      Eigen::Matrix3d h;
+      if (l <= tiny) {
+        // Coincident endpoints: no direction to push along; a plain spring-like stiffness keeps H SPD.
+        fq[0] = fq[1] = fq[2] = 0.0;
+        h = k * Eigen::Matrix3d::Identity();
+      } else {
+        const Eigen::Vector3d u = d / l;
+        const double stretch = l - rest_length_[q];
+        fq[0] = -k * stretch * u[0];
+        fq[1] = -k * stretch * u[1];
+        fq[2] = -k * stretch * u[2];
+        // H_q = k [u u^T + s (I - u u^T)], s = 1 - r̄/l; projected Newton clamps s at zero.
+        double s = 1.0 - rest_length_[q] / l;
+        if (s < 0.0) s = absolute_projection_ ? -s : s * negative_scale;
+        h = k * ((1.0 - s) * (u * u.transpose()) + s * Eigen::Matrix3d::Identity());
+      }
+      hq[0] = h(0, 0), hq[1] = h(0, 1), hq[2] = h(0, 2), hq[3] = h(1, 1), hq[4] = h(1, 2), hq[5] = h(2, 2);
+      if (hessian) {
+        const auto& slots = pattern.spring_slots[q];
+        for (int ci = 0; ci < 3; ++ci) {
+          for (int cj = 0; cj < 3; ++cj) {
+            const bool pinned = fixed[3 * a[q] + ci] || fixed[3 * b[q] + cj];
+            values[slots[ci * 3 + cj]] = pinned ? 0.0 : -h(ci, cj);
+          }
+        }
+      }
+    }
+  });
+
+  const int* offsets = rig.vertex_spring_offsets().data();
+  const int* incident = rig.vertex_springs().data();
+  const double shift = diagonal_shift_;
+  return tbb::parallel_deterministic_reduce(
+      tbb::blocked_range<int>(0, n, kGrain), 0.0,
+      [&](const tbb::blocked_range<int>& range, double residual) {
+        for (int v = range.begin(); v != range.end(); ++v) {
+          double h[6] = {0, 0, 0, 0, 0, 0};
+          double f[3] = {0, 0, 0};
+          for (int e = offsets[v]; e < offsets[v + 1]; ++e) {
+            const int q = incident[e];
+            const double sign = a[q] == v ? 1.0 : -1.0;
+            const double* hq = &spring_hessian_[6 * static_cast<size_t>(q)];
+            const double* fq = &spring_force_[3 * static_cast<size_t>(q)];
+            for (int i = 0; i < 6; ++i) h[i] += hq[i];
+            for (int i = 0; i < 3; ++i) f[i] += sign * fq[i];
+          }
+          for (int c = 0; c < 3; ++c) {
+            const bool pinned = fixed[3 * v + c];
+            force_[3 * v + c] = pinned ? 0.0 : f[c];
+            residual = std::max(residual, std::abs(force_[3 * v + c]));
+          }
+          if (hessian) {
+            const auto& slots = pattern.vertex_slots[v];
+            static constexpr int kRow[6] = {0, 0, 0, 1, 1, 2};
+            static constexpr int kCol[6] = {0, 1, 2, 1, 2, 2};
+            for (int i = 0; i < 6; ++i) {
+              const bool pin_row = fixed[3 * v + kRow[i]];
+              const bool pin_col = fixed[3 * v + kCol[i]];
+              double value;
+              if (kRow[i] == kCol[i]) {
+                value = pin_row ? 1.0 : h[i] + shift;
+              } else {
+                value = (pin_row || pin_col) ? 0.0 : h[i];
+              }
+              values[slots[i]] = value;
+            }
+          }
+        }
+        return residual;
+      },
+      [](double l, double r) { return std::max(l, r); });
+}
+
+double Solver::Impl::Energy(const Eigen::VectorXd& x) const {
+  const Rig& rig = *rig_;
+  const int* a = rig.spring_a().data();
+  const int* b = rig.spring_b().data();
+  return tbb::parallel_deterministic_reduce(
+      tbb::blocked_range<int>(0, rig.num_springs(), kGrain), 0.0,
+      [&](const tbb::blocked_range<int>& range, double sum) {
+        for (int q = range.begin(); q != range.end(); ++q) {
+          const double l = (x.segment<3>(3 * a[q]) - x.segment<3>(3 * b[q])).norm();
+          const double stretch = l - rest_length_[q];
+          sum += 0.5 * stiffness_[q] * stretch * stretch;
+        }
+        return sum;
+      },
+      [](double l, double r) { return l + r; });
+}
+
+SolveSummary Solver::Impl::Solve(const Frame& frame, Points* positions) {
+  const auto start = std::chrono::steady_clock::now();
+  const Rig& rig = *rig_;
+  SolveSummary summary;
+  const Points linear = LinearBlend(rig, frame.weights);  // validates the weights
+  const int n = rig.num_vertices();
+  summary.fixed_vertices = static_cast<int>(rig.fixed_vertices().size());
+  if (options_.linear) {
+    *positions = linear;
+    summary.termination = Termination::kLinear;
+    summary.message = "linear blendshape";
+    summary.solve_ms = Elapsed(start);
+    return summary;
+  }
+  PrepareFrame(frame.weights);
+
+  // Start: the previous frame's equilibrium (warm start) or the linear blendshape; fixed vertices go to
+  // their linearly blended positions.
+  const Points& initial = (options_.warm_start && has_previous_) ? previous_ : linear;
+  x_.resize(3 * n);
+  for (int v = 0; v < n; ++v) x_.segment<3>(3 * v) = initial.row(v).transpose();
+  std::fill(fixed_dof_.begin(), fixed_dof_.end(), 0);
+  for (int v : rig.fixed_vertices()) {
+    x_.segment<3>(3 * v) = linear.row(v).transpose();
+    fixed_dof_[3 * v] = fixed_dof_[3 * v + 1] = fixed_dof_[3 * v + 2] = 1;
+  }
+  diagonal_shift_ = 0.0;
+  if (rig.boundary_mode() == BoundaryMode::kFloating) {
+    // 3-2-1 gauge: move the start rigidly so gauge vertex 0 is at the origin, 1 on the x axis and 2 in
+    // the xy plane, then hold exactly those six coordinates. Any configuration can be moved so, hence the
+    // gauge removes the rigid motions without adding a force.
+    const auto& g = rig.gauge_vertices();
+    if (!internal::ToCanonicalFrame(g, &x_)) {
+      summary.termination = Termination::kNumericalFailure;
+      summary.message = "the gauge vertices became collinear in the start configuration";
+      summary.solve_ms = Elapsed(start);
+      return summary;
+    }
+    fixed_dof_[3 * g[0]] = fixed_dof_[3 * g[0] + 1] = fixed_dof_[3 * g[0] + 2] = 1;
+    fixed_dof_[3 * g[1] + 1] = fixed_dof_[3 * g[1] + 2] = 1;
+    fixed_dof_[3 * g[2] + 2] = 1;
+  } else if (rig.boundary_mode() == BoundaryMode::kPartiallyFixed) {
+    diagonal_shift_ = 1e-8 / rig.summary().mean_rest_length;
+  }
+
+  const double diagonal = rig.summary().bounding_box_diagonal;
+  const bool try_true = options_.hessian == HessianMode::kTrueWithProjectedFallback;
+  absolute_projection_ = options_.hessian == HessianMode::kAbsolute;
+  int tiny_steps = 0;
+  double residual = Assemble(x_, 1.0, false);
+  summary.initial_residual = residual;
+  double energy = Energy(x_);
+  summary.termination = Termination::kMaxIterations;
+  for (int iteration = 0;; ++iteration) {
+    if (!std::isfinite(residual) || !std::isfinite(energy)) {
+      summary.termination = Termination::kNumericalFailure;
+      summary.message = "non-finite force or energy";
+      break;
+    }
+    if (residual <= options_.residual_tolerance) {
+      summary.termination = Termination::kConverged;
+      break;
+    }
+    if (iteration >= options_.max_iterations) {
+      summary.termination = Termination::kMaxIterations;
+      summary.message = fmt::format("no convergence in {} Newton iterations", options_.max_iterations);
+      break;
+    }
+    ++summary.newton_iterations;
+
+    // Newton direction: H step = f, with the true Hessian while it is positive definite.
+    const auto factor_start = std::chrono::steady_clock::now();
+    internal::FactorStatus status = internal::FactorStatus::kFailed;
+    bool projected = false;
+    // The true Hessian converges quadratically but is indefinite where springs are compressed; when its
+    // Cholesky fails, halve the compressed springs' negative transverse stiffness, then drop it (projected
+    // Newton, always positive definite once boundary conditions hold).
+    const std::array<double, 3> scales = {try_true ? 1.0 : -1.0, try_true ? 0.5 : -1.0, 0.0};
+    for (double scale : scales) {
+      if (scale < 0.0) continue;
+      projected = scale < 1.0;
+      Assemble(x_, scale, true);
+      status = cholesky_->Factorize(values_.data());
+      ++summary.factorizations;
+      if (projected) ++summary.projected_factorizations;
+      if (status != internal::FactorStatus::kNotPositiveDefinite) break;
+    }
+    summary.factorize_ms += Elapsed(factor_start);
+    if (status != internal::FactorStatus::kOk) {
+      summary.termination = Termination::kNumericalFailure;
+      summary.message = "the projected Hessian could not be factorized";
+      break;
+    }
+    cholesky_->Solve(force_.data(), step_.data());
+    if (!step_.allFinite()) {
+      summary.termination = Termination::kNumericalFailure;
+      summary.message = "the Newton step is not finite";
+      break;
+    }
+
+    // Backtracking line search on the energy (Armijo).
+    const double slope = -force_.dot(step_);  // dE/dt at t = 0; negative for a descent direction
+    double t = 1.0;
+    double trial_energy = 0.0;
+    bool accepted = false;
+    for (int k = 0; k < options_.max_line_search_steps; ++k) {
+      trial_ = x_ + t * step_;
+      trial_energy = Energy(trial_);
+      if (trial_energy <= energy + 1e-4 * t * slope) {
+        accepted = true;
+        break;
+      }
+      t *= 0.5;
+      ++summary.line_search_halvings;
+    }
+    if (!accepted) {
+      // At round-off level the energy cannot tell steps apart; take the full step if it lowers the force.
+      trial_ = x_ + step_;
+      const Eigen::VectorXd saved_force = force_;
+      const double full_residual = Assemble(trial_, 1.0, false);
+      if (full_residual < residual) {
+        t = 1.0;
+        trial_energy = Energy(trial_);
+      } else {
+        force_ = saved_force;
+        summary.termination = Termination::kStalled;
+        summary.message = fmt::format("the line search found no lower energy (residual {:.3g})", residual);
+        break;
+      }
+    }
+    x_.swap(trial_);
+    energy = trial_energy;
+    residual = Assemble(x_, 1.0, false);
+
+    const double moved = t * step_.lpNorm<Eigen::Infinity>();
+    tiny_steps = moved <= options_.step_tolerance * diagonal ? tiny_steps + 1 : 0;
+    if (tiny_steps >= 2 && residual > options_.residual_tolerance) {
+      summary.termination = Termination::kStalled;
+      summary.message = fmt::format("steps below {:.3g} of the diagonal with residual {:.3g}",
+                                    options_.step_tolerance, residual);
+      break;
+    }
+  }
+  summary.residual = residual;
+  summary.energy = energy;
+
+  Points solved(n, 3);
+  for (int v = 0; v < n; ++v) solved.row(v) = x_.segment<3>(3 * v).transpose();
+  if (rig.boundary_mode() == BoundaryMode::kFloating) {
+    internal::AlignRigidly(linear, &solved);
+  }
+  if (summary.termination != Termination::kNumericalFailure) {
+    previous_ = solved;
+    has_previous_ = true;
+  } else {
+    has_previous_ = false;  // never warm-start from a broken state
+  }
+  *positions = solved.topRows(rig.num_surface_vertices());
+  if (summary.termination == Termination::kConverged) summary.message = "converged";
+  summary.solve_ms = Elapsed(start);
+  return summary;
+}
+
+Solver::Solver(std::shared_ptr<const Rig> rig, SolveOptions options)
+    : impl_(std::make_unique<Impl>(std::move(rig), std::move(options))) {}
+Solver::~Solver() = default;
+Solver::Solver(Solver&&) noexcept = default;
+Solver& Solver::operator=(Solver&&) noexcept = default;
+
+SolveSummary Solver::Solve(const Frame& frame, Points* positions) {
+  return impl_->Solve(frame, positions);
+}
+void Solver::Reset() { impl_->Reset(); }
+const Rig& Solver::rig() const { return *impl_->rig_; }
+const SolveOptions& Solver::options() const { return impl_->options_; }
+void Solver::set_options(const SolveOptions& options) {
+  options.Validate();
+  impl_->options_ = options;
+}
+
+}  // namespace springblend
