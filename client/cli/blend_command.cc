@@ -27,6 +27,7 @@ struct BlendArgs {
   std::vector<int> fixed;
   double static_tolerance = RigOptions{}.static_tolerance;
   bool no_bending = false;
+  double bending_stiffness = RigOptions{}.bending_stiffness;
   double tolerance = SolveOptions{}.residual_tolerance;
   int max_iterations = SolveOptions{}.max_iterations;
   std::string solver = "cholmod";
@@ -78,6 +79,7 @@ int RunBlend(const BlendArgs& args) {
   rig_options.fixed_vertices = args.fixed;
   rig_options.static_tolerance = args.static_tolerance;
   rig_options.bending_springs = !args.no_bending;
+  rig_options.bending_stiffness = args.bending_stiffness;
   rig_options.linear_solver = LinearSolverTypeFromString(args.solver);
 
   TriangleMesh rest = LoadMesh(args.rest);
@@ -160,6 +162,8 @@ Runner AddBlendCommand(CLI::App& app) {
                   "vertices moving less than this fraction of the diagonal in every target are fixed; "
                   "negative disables");
   cmd->add_flag("--no-bending", args->no_bending, "omit bending springs");
+  cmd->add_option("--bending-stiffness", args->bending_stiffness,
+                  "stiffness of bending springs relative to structure springs");
   cmd->add_option("--tolerance", args->tolerance, "residual tolerance (largest force, strain units)");
   cmd->add_option("--max-iterations", args->max_iterations, "Newton iterations per frame");
   cmd->add_option("--solver", args->solver, "sparse Cholesky backend: cholmod or eigen");

@@ -37,6 +37,15 @@ class RawImporter final : public OpenMesh::IO::ImporterT<PolyMesh> {
     points.push_back({p[0], p[1], p[2]});
     return ImporterT<PolyMesh>::add_vertex(p);
   }
+  // The PLY reader adds a vertex first and sets its position afterwards.
+  OpenMesh::VertexHandle add_vertex() override {
+    points.push_back({0.0, 0.0, 0.0});
+    return ImporterT<PolyMesh>::add_vertex();
+  }
+  void set_point(OpenMesh::VertexHandle vh, const OpenMesh::Vec3f& p) override {
+    if (vh.idx() >= 0 && static_cast<size_t>(vh.idx()) < points.size()) points[vh.idx()] = {p[0], p[1], p[2]};
+    ImporterT<PolyMesh>::set_point(vh, p);
+  }
   OpenMesh::FaceHandle add_face(const VHandles& indices) override {
     std::vector<int> face;
     face.reserve(indices.size());

@@ -48,6 +48,9 @@ void SolveOptions::Validate() const {
   if (max_iterations < 1 || max_iterations > 10000) {
     fail(fmt::format("solve option max_iterations = {} is outside [1, 10000]", max_iterations));
   }
+  if (!(max_step_fraction > 0.0 && max_step_fraction <= 1000.0)) {
+    fail(fmt::format("solve option max_step_fraction = {} is outside (0, 1000]", max_step_fraction));
+  }
   if (max_line_search_steps < 1 || max_line_search_steps > 60) {
     fail(fmt::format("solve option max_line_search_steps = {} is outside [1, 60]",
                      max_line_search_steps));
@@ -109,6 +112,8 @@ std::vector<Frame> SweepFrames(const std::vector<double>& end, int steps) {
 namespace {
 
 constexpr size_t kGrain = 2048;
+constexpr double kNoHessian = -1.0;  // Assemble: forces only
+constexpr double kNoProgress = 1e-15;  // a step this short (of the diagonal) changes nothing
 
 double Elapsed(std::chrono::steady_clock::time_point since) {
   return std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - since).count();
@@ -142,9 +147,11 @@ class Solver::Impl {
 
  private:
   void PrepareFrame(const std::vector<double>& weights);
-  // Spring forces and, when `values` is set, the Hessian's values with Dirichlet rows and columns
-  // replaced by the identity. Returns the largest force on a free degree of freedom.
-  double Assemble(const Eigen::VectorXd& x, double negative_scale, bool hessian);
+  // Spring forces and, unless shift is kNoHessian, the Hessian's values (plus `shift` on the free
+  // diagonal) with Dirichlet rows and columns replaced by the identity. Compressed springs' negative
+  // transverse stiffness is scaled by negative_scale (1: true Hessian, 0: projected). Returns the largest
+  // force on a free degree of freedom.
+  double Assemble(const Eigen::VectorXd& x, double negative_scale, double shift = kNoHessian);
   double Energy(const Eigen::VectorXd& x) const;
 
   std::unique_ptr<internal::SparseCholesky> cholesky_;
@@ -174,7 +181,8 @@ void Solver::Impl::PrepareFrame(const std::vector<double>& weights) {
   }
 }
 
-double Solver::Impl::Assemble(const Eigen::VectorXd& x, double negative_scale, bool hessian) {
+double Solver::Impl::Assemble(const Eigen::VectorXd& x, double negative_scale, double shift) {
+  const bool hessian = shift >= 0.0;
   const Rig& rig = *rig_;
   const int m = rig.num_springs();
   const int n = rig.num_vertices();
@@ -223,7 +231,7 @@ double Solver::Impl::Assemble(const Eigen::VectorXd& x, double negative_scale, b
 
   const int* offsets = rig.vertex_spring_offsets().data();
   const int* incident = rig.vertex_springs().data();
-  const double shift = diagonal_shift_;
+  shift += diagonal_shift_;
   return tbb::parallel_deterministic_reduce(
       tbb::blocked_range<int>(0, n, kGrain), 0.0,
       [&](const tbb::blocked_range<int>& range, double residual) {
@@ -331,7 +339,8 @@ SolveSummary Solver::Impl::Solve(const Frame& frame, Points* positions) {
   const bool try_true = options_.hessian == HessianMode::kTrueWithProjectedFallback;
   absolute_projection_ = options_.hessian == HessianMode::kAbsolute;
   int tiny_steps = 0;
-  double residual = Assemble(x_, 1.0, false);
+  double last_step = 0.0;  // length of the last Newton step (largest coordinate change)
+  double residual = Assemble(x_, 1.0);
   summary.initial_residual = residual;
   double energy = Energy(x_);
   summary.termination = Termination::kMaxIterations;
@@ -341,7 +350,9 @@ SolveSummary Solver::Impl::Solve(const Frame& frame, Points* positions) {
       summary.message = "non-finite force or energy";
       break;
     }
-    if (residual <= options_.residual_tolerance) {
+    // Converged: the forces are in equilibrium and, if Newton moved at all, its last step was short
+    // (a small force alone says little where the system is soft).
+    if (residual <= options_.residual_tolerance && last_step <= options_.step_tolerance * diagonal) {
       summary.termination = Termination::kConverged;
       break;
     }
@@ -354,25 +365,36 @@ SolveSummary Solver::Impl::Solve(const Frame& frame, Points* positions) {
 
     // Newton direction: H step = f, with the true Hessian while it is positive definite.
     const auto factor_start = std::chrono::steady_clock::now();
-    internal::FactorStatus status = internal::FactorStatus::kFailed;
-    bool projected = false;
     // The true Hessian converges quadratically but is indefinite where springs are compressed; when its
     // Cholesky fails, halve the compressed springs' negative transverse stiffness, then drop it (projected
-    // Newton, always positive definite once boundary conditions hold).
-    const std::array<double, 3> scales = {try_true ? 1.0 : -1.0, try_true ? 0.5 : -1.0, 0.0};
-    for (double scale : scales) {
-      if (scale < 0.0) continue;
-      projected = scale < 1.0;
-      Assemble(x_, scale, true);
+    // Newton). The projected Hessian is still singular where the surface is flat at rest (a vertex inside a
+    // flat region moves out of plane without stretching any spring to first order), so the last resort is
+    // a Levenberg-Marquardt shift of the diagonal, growing until the factorization succeeds.
+    struct Attempt {
+      double negative_scale, shift;
+    };
+    const double k_mean = 1.0 / rig.summary().mean_rest_length;
+    const std::array<Attempt, 7> attempts = {{{1.0, 0.0},
+                                        {0.5, 0.0},
+                                        {0.0, 0.0},
+                                        {0.0, 1e-6 * k_mean},
+                                        {0.0, 1e-4 * k_mean},
+                                        {0.0, 1e-2 * k_mean},
+                                        {0.0, 1.0 * k_mean}}};
+    internal::FactorStatus status = internal::FactorStatus::kFailed;
+    for (size_t i = try_true ? 0 : 2; i < attempts.size(); ++i) {
+      const Attempt& attempt = attempts[i];
+      Assemble(x_, attempt.negative_scale, attempt.shift);
       status = cholesky_->Factorize(values_.data());
       ++summary.factorizations;
-      if (projected) ++summary.projected_factorizations;
+      if (attempt.negative_scale < 1.0) ++summary.projected_factorizations;
+      if (attempt.shift > 0.0) ++summary.shifted_factorizations;
       if (status != internal::FactorStatus::kNotPositiveDefinite) break;
     }
     summary.factorize_ms += Elapsed(factor_start);
     if (status != internal::FactorStatus::kOk) {
       summary.termination = Termination::kNumericalFailure;
-      summary.message = "the projected Hessian could not be factorized";
+      summary.message = "the Hessian could not be factorized even with a diagonal shift";
       break;
     }
     cholesky_->Solve(force_.data(), step_.data());
@@ -382,46 +404,59 @@ SolveSummary Solver::Impl::Solve(const Frame& frame, Points* positions) {
       break;
     }
 
-    // Backtracking line search on the energy (Armijo).
+    // A step that carries a vertex further than a fraction of a spring length can pass it through its
+    // neighbours and land in another (inverted) equilibrium; shorten such steps before the line search.
+    double longest = 0.0;
+    for (int v = 0; v < n; ++v) longest = std::max(longest, step_.segment<3>(3 * v).squaredNorm());
+    longest = std::sqrt(longest);
+    const double max_move = options_.max_step_fraction * rig.summary().mean_rest_length;
+    if (longest > max_move) step_ *= max_move / longest;
+
+    // Backtracking line search on the energy (Armijo). Near convergence the energy change drops below
+    // its round-off; there a step is judged by the force it leaves instead.
     const double slope = -force_.dot(step_);  // dE/dt at t = 0; negative for a descent direction
+    const double energy_noise = 1e-13 * std::max(energy, 1e-300);
     double t = 1.0;
     double trial_energy = 0.0;
+    double trial_residual = -1.0;
     bool accepted = false;
-    for (int k = 0; k < options_.max_line_search_steps; ++k) {
+    for (int k = 0; k < options_.max_line_search_steps && !accepted; ++k) {
+      trial_residual = -1.0;
       trial_ = x_ + t * step_;
       trial_energy = Energy(trial_);
       if (trial_energy <= energy + 1e-4 * t * slope) {
         accepted = true;
-        break;
+      } else if (trial_energy - energy <= energy_noise) {
+        trial_residual = Assemble(trial_, 1.0);
+        accepted = trial_residual < residual;
       }
-      t *= 0.5;
-      ++summary.line_search_halvings;
+      if (!accepted) {
+        t *= 0.5;
+        ++summary.line_search_halvings;
+      }
     }
     if (!accepted) {
-      // At round-off level the energy cannot tell steps apart; take the full step if it lowers the force.
-      trial_ = x_ + step_;
-      const Eigen::VectorXd saved_force = force_;
-      const double full_residual = Assemble(trial_, 1.0, false);
-      if (full_residual < residual) {
-        t = 1.0;
-        trial_energy = Energy(trial_);
-      } else {
-        force_ = saved_force;
-        summary.termination = Termination::kStalled;
-        summary.message = fmt::format("the line search found no lower energy (residual {:.3g})", residual);
+      Assemble(x_, 1.0);  // restore the forces of the current iterate
+      if (residual <= options_.residual_tolerance) {
+        // In equilibrium to the tolerance; only the step check could not be completed.
+        summary.termination = Termination::kConverged;
         break;
       }
+      summary.termination = Termination::kStalled;
+      summary.message = fmt::format("the line search found no lower energy (residual {:.3g})", residual);
+      break;
     }
     x_.swap(trial_);
     energy = trial_energy;
-    residual = Assemble(x_, 1.0, false);
+    residual = trial_residual >= 0.0 ? trial_residual : Assemble(x_, 1.0);
 
-    const double moved = t * step_.lpNorm<Eigen::Infinity>();
-    tiny_steps = moved <= options_.step_tolerance * diagonal ? tiny_steps + 1 : 0;
-    if (tiny_steps >= 2 && residual > options_.residual_tolerance) {
+    last_step = t * step_.lpNorm<Eigen::Infinity>();
+    summary.last_step = last_step / diagonal;
+    tiny_steps = last_step <= kNoProgress * diagonal ? tiny_steps + 1 : 0;
+    if (tiny_steps >= 3 && residual > options_.residual_tolerance) {
       summary.termination = Termination::kStalled;
-      summary.message = fmt::format("steps below {:.3g} of the diagonal with residual {:.3g}",
-                                    options_.step_tolerance, residual);
+      summary.message = fmt::format("no progress: three steps below {:.0e} of the diagonal with residual {:.3g}",
+                                    kNoProgress, residual);
       break;
     }
   }

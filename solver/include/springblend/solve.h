@@ -31,13 +31,17 @@ struct SolveOptions {
   // Converged when the largest force on any free degree of freedom is at most this. Forces are in units of
   // strain (k = 1 / rest length), so the tolerance does not depend on the mesh's scale. Range (0, 1).
   double residual_tolerance = 1e-9;
-  // A Newton step shorter than this fraction of the bounding-box diagonal counts as no progress.
-  double step_tolerance = 1e-14;
+  // ...and the last Newton step (largest coordinate change) was at most this fraction of the bounding-box
+  // diagonal. Both must hold: where the system is soft a small force alone does not mean a small error.
+  double step_tolerance = 1e-8;
   // Newton iterations per frame before giving up (the frame then reports kMaxIterations). Range [1, 10000].
   int max_iterations = 200;
   // Backtracking line search halvings per Newton step. Range [1, 60].
   int max_line_search_steps = 40;
   HessianMode hessian = HessianMode::kTrueWithProjectedFallback;
+  // No vertex moves further than this fraction of the mean rest length in one Newton step, so a step
+  // cannot carry a vertex through its neighbours into an inverted equilibrium. Range (0, 1000].
+  double max_step_fraction = 0.5;
   // Start each frame from the previous frame's solution (the paper's protocol). When false, or for the
   // first frame, the solve starts from the linear blendshape.
   bool warm_start = true;
@@ -62,10 +66,12 @@ struct SolveSummary {
   std::string message;
   int newton_iterations = 0;
   int factorizations = 0;
-  int projected_factorizations = 0;  // factorizations that used the projected Hessian
+  int projected_factorizations = 0;  // factorizations with compressed springs' curvature reduced
+  int shifted_factorizations = 0;    // factorizations that needed a Levenberg-Marquardt diagonal shift
   int line_search_halvings = 0;
   double initial_residual = 0.0;
   double residual = 0.0;  // final largest force on a free degree of freedom (strain units)
+  double last_step = 0.0;  // last Newton step's largest coordinate change, fraction of the diagonal
   double energy = 0.0;    // final spring energy
   int fixed_vertices = 0;
   double solve_ms = 0.0;

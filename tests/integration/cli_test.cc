@@ -1,0 +1,140 @@
+// The `springblend blend` command as users and scripts call it: a real process, its JSON lines, its
+// files and its exit codes.
+#include <gmock/gmock.h>
+#include <gtest/gtest.h>
+#include <sys/wait.h>
+
+#include <array>
+#include <cstdio>
+#include <fstream>
+#include <nlohmann/json.hpp>
+#include <sstream>
+
+#include "test_util.h"
+
+namespace springblend {
+namespace {
+
+using ::testing::HasSubstr;
+using testing::DataPath;
+using testing::TempDir;
+
+struct CliRun {
+  int exit_code = -1;
+  std::vector<nlohmann::json> lines;  // stdout, one JSON document per line
+  std::string stderr_text;
+};
+
+CliRun RunCli(const std::string& arguments, const TempDir& dir) {
+  const std::string err = dir.File("stderr.txt");
+  const std::string command = std::string(SPRINGBLEND_CLI) + " " + arguments + " 2>" + err;
+  CliRun run;
+  FILE* pipe = popen(command.c_str(), "r");
+  if (pipe == nullptr) return run;
+  std::string out;
+  std::array<char, 4096> buffer;
+  size_t n;
+  while ((n = fread(buffer.data(), 1, buffer.size(), pipe)) > 0) out.append(buffer.data(), n);
+  const int status = pclose(pipe);
+  run.exit_code = WIFEXITED(status) ? WEXITSTATUS(status) : -1;
+  std::istringstream lines(out);
+  for (std::string line; std::getline(lines, line);) {
+    if (!line.empty()) run.lines.push_back(nlohmann::json::parse(line));
+  }
+  std::ifstream in(err);
+  run.stderr_text.assign(std::istreambuf_iterator<char>(in), std::istreambuf_iterator<char>());
+  return run;
+}
+
+const std::string kRest = DataPath("cylinder/cylinder.obj");
+const std::string kBend = DataPath("cylinder/poses-2_cylinder-1.obj");
+const std::string kTwist = DataPath("cylinder/poses-2_cylinder-3.obj");
+
+TEST(CliBlend, SolvesOneFrameAndPrintsItsSummary) {
+  TempDir dir;
+  const CliRun run = RunCli("blend --rest " + kRest + " --target " + kBend + " --target " + kTwist +
+                             " --weights 0.5,0.25 --out " + dir.File("out.obj"),
+                         dir);
+  ASSERT_EQ(run.exit_code, 0) << run.stderr_text;
+  ASSERT_EQ(run.lines.size(), 1u);
+  const auto& j = run.lines[0];
+  EXPECT_EQ(j["vertices"], 420);
+  EXPECT_EQ(j["springs"], 2400);
+  EXPECT_EQ(j["converged"], true);
+  EXPECT_GT(j["newton_iterations"].get<int>(), 0);
+  EXPECT_LE(j["residual"].get<double>(), 1e-9);
+  EXPECT_GT(j["solve_ms"].get<double>(), 0.0);
+  const TriangleMesh out = LoadMesh(dir.File("out.obj"));
+  EXPECT_EQ(out.vertices.rows(), 420);
+  EXPECT_EQ(out.faces, LoadMesh(kRest).faces);
+}
+
+TEST(CliBlend, SweepWritesOneMeshAndOneLinePerFrameEndingOnTheTarget) {
+  TempDir dir;
+  const CliRun run = RunCli("blend --rest " + kRest + " --target " + kBend + " --sweep 6 --out " +
+                             dir.File("sweep"),
+                         dir);
+  ASSERT_EQ(run.exit_code, 0) << run.stderr_text;
+  ASSERT_EQ(run.lines.size(), 6u);
+  for (int i = 0; i < 6; ++i) {
+    EXPECT_EQ(run.lines[i]["frame"], i);
+    EXPECT_NEAR(run.lines[i]["weights"][0].get<double>(), i / 5.0, 1e-15);
+    EXPECT_TRUE(std::filesystem::exists(dir.File("sweep/frame_000" + std::to_string(i) + ".obj")));
+  }
+  const TriangleMesh last = LoadMesh(dir.File("sweep/frame_0005.obj"));
+  const TriangleMesh target = LoadMesh(kBend);
+  EXPECT_LE(testing::MaxDistance(last.vertices, target.vertices),
+            1e-6 * BoundingBoxDiagonal(target.vertices));
+}
+
+TEST(CliBlend, LinearFlagWritesTheLinearBlendshape) {
+  TempDir dir;
+  const CliRun run = RunCli("blend --rest " + kRest + " --target " + kBend + " --weights 0.5 --linear --out " +
+                             dir.File("lin.obj"),
+                         dir);
+  ASSERT_EQ(run.exit_code, 0) << run.stderr_text;
+  EXPECT_EQ(run.lines[0]["termination"], "linear");
+  const Points expected = 0.5 * (LoadMesh(kRest).vertices + LoadMesh(kBend).vertices);
+  // OBJ text read back through OpenMesh's float32 parser.
+  EXPECT_LE(testing::MaxDistance(LoadMesh(dir.File("lin.obj")).vertices, expected),
+            1e-7 * BoundingBoxDiagonal(expected));
+}
+
+struct BadCall {
+  const char* name;
+  std::string arguments;
+  std::vector<std::string> message_parts;
+};
+
+class CliRefuses : public ::testing::TestWithParam<BadCall> {};
+
+TEST_P(CliRefuses, WithExitCodeTwoAndAMessageNamingTheProblem) {
+  TempDir dir;
+  const CliRun run = RunCli(GetParam().arguments + " --out " + dir.File("x.obj"), dir);
+  EXPECT_EQ(run.exit_code, 2) << run.stderr_text;
+  EXPECT_TRUE(run.lines.empty());
+  for (const auto& part : GetParam().message_parts) EXPECT_THAT(run.stderr_text, HasSubstr(part));
+  EXPECT_FALSE(std::filesystem::exists(dir.File("x.obj")));
+}
+
+INSTANTIATE_TEST_SUITE_P(
+    BadInput, CliRefuses,
+    ::testing::Values(
+        BadCall{"MissingRest", "blend --rest /nope/rest.obj --target " + kBend, {"/nope/rest.obj", "not found"}},
+        BadCall{"MismatchedTarget",
+                "blend --rest " + kRest + " --target " + DataPath("cube/poses-1_cube-1.obj"),
+                {"poses-1_cube-1.obj", "1538 vertices", "420"}},
+        BadCall{"WrongWeightCount",
+                "blend --rest " + kRest + " --target " + kBend + " --target " + kTwist + " --weights 0.5",
+                {"weights has 1 entries but the rig has 2 targets"}},
+        BadCall{"NanWeight", "blend --rest " + kRest + " --target " + kBend + " --weights nan",
+                {"weights[0]", "not finite"}},
+        BadCall{"FixedOutOfRange", "blend --rest " + kRest + " --target " + kBend + " --fixed 3,5000",
+                {"fixed_vertices[1] = 5000"}},
+        BadCall{"UnknownSolver", "blend --rest " + kRest + " --target " + kBend + " --solver magic",
+                {"unknown linear solver 'magic'"}},
+        BadCall{"MissingTarget", "blend --rest " + kRest, {"--target"}}),
+    [](const ::testing::TestParamInfo<BadCall>& param) { return std::string(param.param.name); });
+
+}  // namespace
+}  // namespace springblend

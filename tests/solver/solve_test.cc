@@ -1,0 +1,285 @@
+// The per-frame solve on the bundled meshes: exact reproduction of the shapes, equilibrium residuals,
+// the physical advantage over linear blending, sweeps, backends and refusals.
+#include "springblend/solve.h"
+
+#include <gmock/gmock.h>
+#include <gtest/gtest.h>
+
+#include <cmath>
+#include <thread>
+
+#include "test_util.h"
+
+namespace springblend {
+namespace {
+
+using ::testing::HasSubstr;
+using testing::CatchError;
+using testing::LoadRig;
+using testing::MaxDistance;
+
+constexpr double kShapeTolerance = 1e-6;  // of the bounding-box diagonal
+
+double Diagonal(const Rig& rig) { return rig.summary().bounding_box_diagonal; }
+
+// Mean relative deviation |l - r̄| / r̄ of the structure springs (mesh edges) of `x`.
+double EdgeLengthError(const Rig& rig, const Points& x, const std::vector<double>& weights) {
+  std::vector<double> blended;
+  BlendRestLengths(rig, weights, &blended);
+  double sum = 0.0;
+  int count = 0;
+  for (int q = 0; q < rig.num_springs(); ++q) {
+    if (rig.spring_kind()[q] != SpringKind::kStructure) continue;
+    const double l = (x.row(rig.spring_a()[q]) - x.row(rig.spring_b()[q])).norm();
+    sum += std::abs(l - blended[q]) / blended[q];
+    ++count;
+  }
+  return sum / count;
+}
+
+struct RigCase {
+  const char* rest;
+  std::vector<const char*> targets;
+  BoundaryMode mode;
+};
+
+class ReproducesShapes : public ::testing::TestWithParam<RigCase> {
+ protected:
+  std::shared_ptr<const Rig> Build() const {
+    std::vector<std::string> targets(GetParam().targets.begin(), GetParam().targets.end());
+    auto rig = LoadRig(GetParam().rest, targets);
+    EXPECT_EQ(rig->boundary_mode(), GetParam().mode);
+    return rig;
+  }
+};
+
+TEST_P(ReproducesShapes, AlphaZeroGivesTheRestShape) {
+  auto rig = Build();
+  Solver solver(rig);
+  Points x;
+  const SolveSummary s = solver.Solve({std::vector<double>(rig->num_targets(), 0.0)}, &x);
+  ASSERT_TRUE(s.converged()) << s.message;
+  EXPECT_LE(MaxDistance(x, rig->rest().vertices), kShapeTolerance * Diagonal(*rig));
+}
+
+TEST_P(ReproducesShapes, AWeightOfOneGivesThatTarget) {
+  auto rig = Build();
+  for (int t = 0; t < rig->num_targets(); ++t) {
+    std::vector<double> w(rig->num_targets(), 0.0);
+    w[t] = 1.0;
+    SolveOptions options;
+    Solver solver(rig, options);
+    Points x;
+    const SolveSummary s = solver.Solve({w}, &x);
+    ASSERT_TRUE(s.converged()) << s.message;
+    EXPECT_LE(s.residual, options.residual_tolerance);
+    EXPECT_LE(MaxDistance(x, rig->target(t).vertices), kShapeTolerance * Diagonal(*rig))
+        << "target " << rig->target(t).name;
+  }
+}
+
+INSTANTIATE_TEST_SUITE_P(
+    BundledRigs, ReproducesShapes,
+    ::testing::Values(
+        RigCase{"cylinder/cylinder.obj", {"cylinder/poses-2_cylinder-1.obj"}, BoundaryMode::kFixedVertices},
+        RigCase{"cylinder/cylinder.obj",
+                {"cylinder/poses-2_cylinder-1.obj", "cylinder/poses-2_cylinder-4.obj"},
+                BoundaryMode::kFixedVertices},
+        RigCase{"cylinder/cylinder.obj", {"cylinder/poses-1_cylinder-2.obj"}, BoundaryMode::kFloating},
+        RigCase{"cube/cube.obj", {"cube/poses-1_cube-1.obj"}, BoundaryMode::kFixedVertices},
+        RigCase{"cube/cube.obj", {"cube/poses-1_cube-4.obj", "cube/poses-2_cube-1.obj"},
+                BoundaryMode::kFloating}));
+
+TEST(Sweep, EndsExactlyOnTheTargetWithEveryFrameInEquilibrium) {
+  auto rig = LoadRig("cylinder/cylinder.obj", {"cylinder/poses-2_cylinder-1.obj"});
+  Solver solver(rig);
+  const auto frames = SweepFrames({1.0}, 12);
+  ASSERT_EQ(frames.size(), 12u);
+  EXPECT_EQ(frames.front().weights[0], 0.0);
+  EXPECT_EQ(frames.back().weights[0], 1.0);
+  Points x, previous;
+  double largest_jump = 0.0, largest_linear_jump = 0.0;
+  for (size_t i = 0; i < frames.size(); ++i) {
+    const SolveSummary s = solver.Solve(frames[i], &x);
+    ASSERT_TRUE(s.converged()) << "frame " << i << ": " << s.message;
+    EXPECT_LE(s.residual, solver.options().residual_tolerance) << "frame " << i;
+    if (i > 0) {
+      largest_jump = std::max(largest_jump, MaxDistance(x, previous));
+      largest_linear_jump = std::max(
+          largest_linear_jump,
+          MaxDistance(LinearBlend(*rig, frames[i].weights), LinearBlend(*rig, frames[i - 1].weights)));
+    }
+    previous = x;
+  }
+  EXPECT_LE(MaxDistance(x, rig->target(0).vertices), kShapeTolerance * Diagonal(*rig));
+  // Smooth: no frame jumps much further than the linear blendshape moves per frame.
+  EXPECT_LE(largest_jump, 3.0 * largest_linear_jump);
+}
+
+TEST(Blend, KeepsEdgeLengthsFarCloserToTheBlendedRestLengthsThanLinearBlending) {
+  // A bending target: rotating parts shrink under linear blending (paper Fig. 1); springs do not.
+  for (const char* target : {"cylinder/poses-2_cylinder-1.obj", "cylinder/poses-2_cylinder-3.obj"}) {
+    auto rig = LoadRig("cylinder/cylinder.obj", {target});
+    Solver solver(rig);
+    Points x;
+    const SolveSummary s = solver.Solve({{0.5}}, &x);
+    ASSERT_TRUE(s.converged()) << s.message;
+    const double physical = EdgeLengthError(*rig, x, {0.5});
+    const double linear = EdgeLengthError(*rig, LinearBlend(*rig, {0.5}), {0.5});
+    RecordProperty(std::string("edge_error_ratio_") + target, std::to_string(linear / physical));
+    EXPECT_GT(linear, 5.0 * physical) << target << ": linear " << linear << ", springs " << physical;
+  }
+}
+
+TEST(Blend, TwoBackendsAgree) {
+  RigOptions eigen_options;
+  eigen_options.linear_solver = LinearSolverType::kEigenSimplicial;
+  auto cholmod = LoadRig("cylinder/cylinder.obj", {"cylinder/poses-2_cylinder-3.obj"});
+  auto eigen = LoadRig("cylinder/cylinder.obj", {"cylinder/poses-2_cylinder-3.obj"}, eigen_options);
+  Points a, b;
+  ASSERT_TRUE(Solver(cholmod).Solve({{0.6}}, &a).converged());
+  ASSERT_TRUE(Solver(eigen).Solve({{0.6}}, &b).converged());
+  EXPECT_LE(MaxDistance(a, b), kShapeTolerance * Diagonal(*cholmod));
+}
+
+TEST(Blend, ProjectedNewtonReachesTheSameEquilibrium) {
+  auto rig = LoadRig("cylinder/cylinder.obj", {"cylinder/poses-2_cylinder-1.obj"});
+  SolveOptions projected;
+  projected.hessian = HessianMode::kProjected;
+  projected.max_iterations = 1000;  // projected Newton converges only linearly
+  Points a, b;
+  const SolveSummary with_true = Solver(rig).Solve({{0.5}}, &a);
+  const SolveSummary without = Solver(rig, projected).Solve({{0.5}}, &b);
+  ASSERT_TRUE(with_true.converged()) << with_true.message;
+  ASSERT_TRUE(without.converged()) << without.message;
+  EXPECT_EQ(without.projected_factorizations, without.factorizations);
+  EXPECT_LE(MaxDistance(a, b), kShapeTolerance * Diagonal(*rig));
+}
+
+TEST(Blend, FixedVerticesMoveWithTheLinearBlend) {
+  RigOptions options;
+  options.fixed_vertices = {0, 1, 2, 200, 419};
+  auto rig = LoadRig("cylinder/cylinder.obj", {"cylinder/poses-1_cylinder-3.obj"}, options);
+  Points x;
+  ASSERT_TRUE(Solver(rig).Solve({{0.4}}, &x).converged());
+  const Points linear = LinearBlend(*rig, {0.4});
+  for (int v : options.fixed_vertices) EXPECT_EQ(x.row(v), linear.row(v)) << "vertex " << v;
+}
+
+TEST(Blend, WeightsOutsideTheUnitIntervalStillSolve) {
+  auto rig = LoadRig("cylinder/cylinder.obj", {"cylinder/poses-2_cylinder-1.obj"});
+  std::vector<double> blended;
+  BlendRestLengths(*rig, {-3.0}, &blended);
+  for (double r : blended) ASSERT_GT(r, 0.0);
+  for (double w : {-0.3, 1.3}) {
+    Solver solver(rig);
+    Points x;
+    const SolveSummary s = solver.Solve({{w}}, &x);
+    EXPECT_TRUE(s.converged()) << "w = " << w << ": " << s.message;
+    EXPECT_TRUE(x.allFinite());
+  }
+}
+
+TEST(Blend, LinearOptionGivesThePlainLinearBlendshape) {
+  auto rig = LoadRig("cylinder/cylinder.obj",
+                     {"cylinder/poses-2_cylinder-1.obj", "cylinder/poses-2_cylinder-2.obj"});
+  SolveOptions options;
+  options.linear = true;
+  Points x;
+  const SolveSummary s = Solver(rig, options).Solve({{0.25, 0.5}}, &x);
+  EXPECT_EQ(s.termination, Termination::kLinear);
+  const Points expected = 0.25 * rig->rest().vertices + 0.25 * rig->target(0).vertices +
+                          0.5 * rig->target(1).vertices;
+  EXPECT_LE(MaxDistance(x, expected), 1e-12);
+}
+
+TEST(Blend, PartiallyFixedRigSolves) {
+  RigOptions options;
+  options.fixed_vertices = {10};
+  auto rig = LoadRig("cylinder/cylinder.obj", {"cylinder/poses-2_cylinder-1.obj"}, options);
+  ASSERT_EQ(rig->boundary_mode(), BoundaryMode::kFixedVertices);  // the static end already fixes it
+  options.static_tolerance = -1.0;
+  auto partial = LoadRig("cylinder/cylinder.obj", {"cylinder/poses-2_cylinder-1.obj"}, options);
+  ASSERT_EQ(partial->boundary_mode(), BoundaryMode::kPartiallyFixed);
+  Points x;
+  const SolveSummary s = Solver(partial).Solve({{1.0}}, &x);
+  ASSERT_TRUE(s.converged()) << s.message;
+  EXPECT_EQ(x.row(10), partial->target(0).vertices.row(10));
+}
+
+TEST(Blend, IterationCapIsReportedNotHidden) {
+  auto rig = LoadRig("cylinder/cylinder.obj", {"cylinder/poses-2_cylinder-1.obj"});
+  SolveOptions options;
+  options.max_iterations = 1;
+  options.residual_tolerance = 1e-14;
+  Points x;
+  const SolveSummary s = Solver(rig, options).Solve({{0.5}}, &x);
+  EXPECT_EQ(s.termination, Termination::kMaxIterations);
+  EXPECT_FALSE(s.converged());
+  EXPECT_EQ(s.newton_iterations, 1);
+  EXPECT_GT(s.residual, options.residual_tolerance);
+  EXPECT_THAT(s.message, HasSubstr("1 Newton iterations"));
+}
+
+TEST(Blend, SolversOnTwoThreadsShareOneRig) {
+  auto rig = LoadRig("cylinder/cylinder.obj",
+                     {"cylinder/poses-2_cylinder-1.obj", "cylinder/poses-2_cylinder-2.obj"});
+  Points reference;
+  ASSERT_TRUE(Solver(rig).Solve({{0.3, 0.4}}, &reference).converged());
+  Points results[2];
+  bool converged[2] = {false, false};
+  std::thread threads[2];
+  for (int i = 0; i < 2; ++i) {
+    threads[i] = std::thread([&, i] {
+      Solver solver(rig);
+      converged[i] = solver.Solve({{0.3, 0.4}}, &results[i]).converged();
+    });
+  }
+  for (auto& t : threads) t.join();
+  for (int i = 0; i < 2; ++i) {
+    EXPECT_TRUE(converged[i]);
+    EXPECT_LE(MaxDistance(results[i], reference), 1e-9 * Diagonal(*rig));
+  }
+}
+
+TEST(ValidateWeights, RefusesTheWrongCountNamingTheTargets) {
+  auto rig = LoadRig("cylinder/cylinder.obj",
+                     {"cylinder/poses-2_cylinder-1.obj", "cylinder/poses-2_cylinder-2.obj"});
+  Solver solver(rig);
+  Points x;
+  const Error e = CatchError([&] { solver.Solve({{0.5}}, &x); });
+  EXPECT_EQ(e.code(), ErrorCode::kInvalidInput);
+  EXPECT_THAT(e.what(), HasSubstr("weights has 1 entries but the rig has 2 targets"));
+  EXPECT_THAT(e.what(), HasSubstr("poses-2_cylinder-2"));
+}
+
+TEST(ValidateWeights, RefusesNonFiniteWeightsNamingTheEntry) {
+  auto rig = LoadRig("cylinder/cylinder.obj",
+                     {"cylinder/poses-2_cylinder-1.obj", "cylinder/poses-2_cylinder-2.obj"});
+  Solver solver(rig);
+  Points x;
+  const Error e = CatchError([&] { solver.Solve({{0.5, std::nan("")}}, &x); });
+  EXPECT_THAT(e.what(), HasSubstr("weights[1]"));
+  EXPECT_THAT(e.what(), HasSubstr("poses-2_cylinder-2"));
+  // The refusal changed nothing: the next good frame solves as if it had never come.
+  Points y, z;
+  ASSERT_TRUE(solver.Solve({{0.2, 0.1}}, &y).converged());
+  ASSERT_TRUE(Solver(rig).Solve({{0.2, 0.1}}, &z).converged());
+  EXPECT_LE(MaxDistance(y, z), 1e-12);
+}
+
+TEST(SolveOptions, RefusesValuesOutOfRange) {
+  SolveOptions options;
+  options.max_iterations = 0;
+  EXPECT_THAT(CatchError([&] { options.Validate(); }).what(), HasSubstr("max_iterations"));
+  options = {};
+  options.residual_tolerance = -1;
+  EXPECT_THAT(CatchError([&] { options.Validate(); }).what(), HasSubstr("residual_tolerance"));
+}
+
+TEST(SweepFrames, RefusesZeroSteps) {
+  EXPECT_THAT(CatchError([] { SweepFrames({1.0}, 0); }).what(), HasSubstr("at least 1 step"));
+}
+
+}  // namespace
+}  // namespace springblend

@@ -1,0 +1,70 @@
+// Helpers shared by the tests: paths to the bundled meshes, small rigs, geometric measures.
+#pragma once
+
+#include <gtest/gtest.h>
+
+#include <filesystem>
+#include <fstream>
+#include <string>
+#include <vector>
+
+#include "springblend/error.h"
+#include "springblend/mesh.h"
+#include "springblend/rig.h"
+#include "springblend/solve.h"
+
+namespace springblend::testing {
+
+inline std::string DataPath(const std::string& relative) {
+  return std::string(SPRINGBLEND_TEST_DATA) + "/" + relative;
+}
+
+inline std::shared_ptr<const Rig> LoadRig(const std::string& rest, const std::vector<std::string>& targets,
+                                          const RigOptions& options = {}) {
+  std::vector<TriangleMesh> meshes;
+  for (const auto& t : targets) meshes.push_back(LoadMesh(DataPath(t)));
+  return Rig::Build(LoadMesh(DataPath(rest)), std::move(meshes), options);
+}
+
+// Largest vertex distance between two equally sized point sets.
+inline double MaxDistance(const Points& a, const Points& b) {
+  return (a - b).rowwise().norm().maxCoeff();
+}
+
+// A temporary directory removed at scope exit.
+class TempDir {
+ public:
+  TempDir() {
+    path_ = std::filesystem::temp_directory_path() /
+            ("springblend-test-" + std::to_string(::getpid()) + "-" + std::to_string(counter_++));
+    std::filesystem::create_directories(path_);
+  }
+  ~TempDir() {
+    std::error_code ec;
+    std::filesystem::remove_all(path_, ec);
+  }
+  std::string File(const std::string& name) const { return (path_ / name).string(); }
+  std::string Write(const std::string& name, const std::string& text) const {
+    std::ofstream(File(name)) << text;
+    return File(name);
+  }
+  const std::filesystem::path& path() const { return path_; }
+
+ private:
+  static inline int counter_ = 0;
+  std::filesystem::path path_;
+};
+
+// Runs fn and returns the springblend::Error it throws (fails the test if it throws nothing).
+template <typename Fn>
+Error CatchError(Fn&& fn) {
+  try {
+    fn();
+  } catch (const Error& e) {
+    return e;
+  }
+  ADD_FAILURE() << "expected springblend::Error";
+  return Error(ErrorCode::kInternal, "no error thrown");
+}
+
+}  // namespace springblend::testing
