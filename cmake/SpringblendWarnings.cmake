@@ -2,7 +2,7 @@
 add_library(springblend_build_flags INTERFACE)
 target_compile_options(springblend_build_flags INTERFACE
   -Wall -Wextra -Wpedantic -Wshadow -Wnon-virtual-dtor -Wold-style-cast -Wcast-align
-  -Woverloaded-virtual -Wimplicit-fallthrough)
+  -Woverloaded-virtual -Wimplicit-fallthrough -Wno-missing-field-initializers)
 if(SPRINGBLEND_SANITIZE)
   target_compile_options(springblend_build_flags INTERFACE
     -fsanitize=${SPRINGBLEND_SANITIZE} -fno-omit-frame-pointer -fno-sanitize-recover=undefined)

@@ -27,6 +27,8 @@ struct BlendArgs {
   std::vector<int> fixed;
   double static_tolerance = RigOptions{}.static_tolerance;
   bool no_bending = false;
+  bool no_interior = false;
+  bool no_anchor = false;
   double bending_stiffness = RigOptions{}.bending_stiffness;
   double tolerance = SolveOptions{}.residual_tolerance;
   int max_iterations = SolveOptions{}.max_iterations;
@@ -45,6 +47,12 @@ nlohmann::json RigJson(const RigSummary& s) {
           {"targets", s.targets},
           {"springs", s.springs},
           {"springs_by_kind", springs},
+          {"interior", s.interior},
+          {"interior_reason", s.interior_reason},
+          {"interior_vertices", s.interior_vertices},
+          {"cap_vertices", s.cap_vertices},
+          {"anchor_vertices", s.anchor_vertices},
+          {"tetrahedra", s.tetrahedra},
           {"static_vertices", s.static_vertices},
           {"user_fixed_vertices", s.user_fixed_vertices},
           {"boundary_mode", ToString(s.boundary_mode)},
@@ -69,6 +77,7 @@ nlohmann::json FrameJson(const Rig& rig, const SolveSummary& s, int frame, const
           {"residual", s.residual},
           {"energy", s.energy},
           {"fixed_vertices", s.fixed_vertices},
+          {"inverted_tetrahedra", s.inverted_tetrahedra},
           {"factorize_ms", s.factorize_ms},
           {"line_search_halvings", s.line_search_halvings},
           {"solve_ms", s.solve_ms}};
@@ -79,6 +88,8 @@ int RunBlend(const BlendArgs& args) {
   rig_options.fixed_vertices = args.fixed;
   rig_options.static_tolerance = args.static_tolerance;
   rig_options.bending_springs = !args.no_bending;
+  rig_options.interior = !args.no_interior;
+  rig_options.anchor = !args.no_anchor;
   rig_options.bending_stiffness = args.bending_stiffness;
   rig_options.linear_solver = LinearSolverTypeFromString(args.solver);
 
@@ -162,6 +173,8 @@ Runner AddBlendCommand(CLI::App& app) {
                   "vertices moving less than this fraction of the diagonal in every target are fixed; "
                   "negative disables");
   cmd->add_flag("--no-bending", args->no_bending, "omit bending springs");
+  cmd->add_flag("--no-interior", args->no_interior, "surface springs only (no tetrahedralized volume)");
+  cmd->add_flag("--no-anchor", args->no_anchor, "no internal anchor (fixed vertices or the gauge hold the rig)");
   cmd->add_option("--bending-stiffness", args->bending_stiffness,
                   "stiffness of bending springs relative to structure springs");
   cmd->add_option("--tolerance", args->tolerance, "residual tolerance (largest force, strain units)");

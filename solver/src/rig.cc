@@ -13,6 +13,10 @@
 
 #include "hessian_pattern.h"
 #include "sparse_cholesky.h"
+#include "anchor.h"
+#include "interior.h"
+#include "springblend/solve.h"
+#include <tbb/parallel_for.h>
 #include "springblend/error.h"
 
 namespace springblend {
@@ -31,6 +35,7 @@ const char* ToString(SpringKind kind) {
   switch (kind) {
     case SpringKind::kStructure: return "structure";
     case SpringKind::kBending: return "bending";
+    case SpringKind::kInternal: return "internal";
   }
   return "unknown";
 }
@@ -54,6 +59,7 @@ const char* ToString(BoundaryMode mode) {
     case BoundaryMode::kFixedVertices: return "fixed_vertices";
     case BoundaryMode::kPartiallyFixed: return "partially_fixed";
     case BoundaryMode::kFloating: return "floating";
+    case BoundaryMode::kAnchored: return "anchored";
   }
   return "unknown";
 }
@@ -70,8 +76,16 @@ void RigOptions::Validate() const {
   }
   in_range(structure_stiffness, 1e-6, 1e6, "structure_stiffness");
   in_range(bending_stiffness, 0.0, 1e6, "bending_stiffness");
+  in_range(internal_stiffness, 0.0, 1e6, "internal_stiffness");
   in_range(min_stiffness_length, 0.0, 1.0, "min_stiffness_length");
   in_range(min_rest_length_fraction, 1e-9, 0.99, "min_rest_length_fraction");
+  in_range(radius_edge_ratio, 1.01, 100.0, "radius_edge_ratio");
+  in_range(tetgen_timeout_seconds, 0.001, 86400.0, "tetgen_timeout_seconds");
+  in_range(anchor_size, 3, 1000, "anchor_size");
+  if (anchor_center && !(std::isfinite((*anchor_center)[0]) && std::isfinite((*anchor_center)[1]) &&
+                         std::isfinite((*anchor_center)[2]))) {
+    throw Error(ErrorCode::kInvalidInput, "rig option anchor_center must be finite");
+  }
 }
 
 Rig::~Rig() = default;
@@ -90,9 +104,14 @@ class RigBuilder {
 
  private:
   static void CheckTargets(const TriangleMesh& rest, const std::vector<TriangleMesh>& targets);
-  static void BuildSprings(Rig& rig);
+  static void BuildSurfaceSprings(Rig& rig, std::unordered_set<std::uint64_t>& springs);
+  static void BuildInterior(Rig& rig, std::unordered_set<std::uint64_t>& springs, internal::Interior& interior);
+  static void BuildIncidence(Rig& rig);
+  static void ComputeRestLengths(Rig& rig);
   static void FindDegenerateFaces(Rig& rig);
   static void BuildBoundary(Rig& rig);
+  static void PlaceInterior(const std::shared_ptr<Rig>& rig, const internal::Interior& interior);
+  static void AddSpring(Rig& rig, std::unordered_set<std::uint64_t>& springs, std::uint64_t key, SpringKind kind);
 };
 
 namespace {
@@ -145,9 +164,17 @@ void RigBuilder::CheckTargets(const TriangleMesh& rest, const std::vector<Triang
   }
 }
 
-void RigBuilder::BuildSprings(Rig& rig) {
+void RigBuilder::AddSpring(Rig& rig, std::unordered_set<std::uint64_t>& springs, std::uint64_t key,
+                           SpringKind kind) {
+  if (!springs.insert(key).second) return;
+  rig.spring_a_.push_back(static_cast<int>(key >> 32));
+  rig.spring_b_.push_back(static_cast<int>(key & 0xffffffffu));
+  rig.spring_kind_.push_back(kind);
+  ++rig.summary_.springs_by_kind[static_cast<int>(kind)];
+}
+
+void RigBuilder::BuildSurfaceSprings(Rig& rig, std::unordered_set<std::uint64_t>& springs) {
   const Faces& faces = rig.rest_.faces;
-  const int n = static_cast<int>(rig.rest_.vertices.rows());
   // Edge -> the corners opposite it, from every face that has it.
   struct EdgeFaces {
     int opposite[2] = {-1, -1};
@@ -167,23 +194,15 @@ void RigBuilder::BuildSprings(Rig& rig) {
       ++e.count;
     }
   }
-
-  std::unordered_set<std::uint64_t> springs;
-  springs.reserve(edge_order.size() * 2);
-  auto add = [&](std::uint64_t key, SpringKind kind) {
-    if (!springs.insert(key).second) return;
-    rig.spring_a_.push_back(static_cast<int>(key >> 32));
-    rig.spring_b_.push_back(static_cast<int>(key & 0xffffffffu));
-    rig.spring_kind_.push_back(kind);
-  };
-  for (std::uint64_t key : edge_order) add(key, SpringKind::kStructure);
+  springs.reserve(edge_order.size() * 3);
+  for (std::uint64_t key : edge_order) AddSpring(rig, springs, key, SpringKind::kStructure);
   RigSummary& s = rig.summary_;
   for (std::uint64_t key : edge_order) {
     const EdgeFaces& e = edges[key];
     if (e.count == 1) ++s.boundary_edges;
     if (e.count > 2) ++s.nonmanifold_edges;
     if (rig.options_.bending_springs && e.count == 2 && e.opposite[0] != e.opposite[1]) {
-      add(PairKey(e.opposite[0], e.opposite[1]), SpringKind::kBending);
+      AddSpring(rig, springs, PairKey(e.opposite[0], e.opposite[1]), SpringKind::kBending);
     }
   }
   if (s.nonmanifold_edges > 0) {
@@ -191,32 +210,43 @@ void RigBuilder::BuildSprings(Rig& rig) {
                                   "across them",
                                   s.nonmanifold_edges));
   }
+}
 
-  const int m = static_cast<int>(rig.spring_a_.size());
-  for (int q = 0; q < m; ++q) ++s.springs_by_kind[static_cast<int>(rig.spring_kind_[q])];
-  s.springs = m;
-
-  // Rest lengths per shape.
-  auto lengths = [&](const Points& x, std::vector<double>& out) {
-    out.resize(m);
-    for (int q = 0; q < m; ++q) out[q] = (x.row(rig.spring_a_[q]) - x.row(rig.spring_b_[q])).norm();
-  };
-  lengths(rig.rest_.vertices, rig.rest_length0_);
-  s.mean_rest_length =
-      std::accumulate(rig.rest_length0_.begin(), rig.rest_length0_.end(), 0.0) / std::max(m, 1);
-  const double unchanged = 1e-12 * s.mean_rest_length;
-  rig.rest_length_delta_.resize(rig.targets_.size());
-  rig.target_changes_lengths_.assign(rig.targets_.size(), 0);
-  for (size_t t = 0; t < rig.targets_.size(); ++t) {
-    std::vector<double>& d = rig.rest_length_delta_[t];
-    lengths(rig.targets_[t].vertices, d);
-    for (int q = 0; q < m; ++q) {
-      d[q] -= rig.rest_length0_[q];
-      if (std::abs(d[q]) > unchanged) rig.target_changes_lengths_[t] = 1;
+void RigBuilder::BuildInterior(Rig& rig, std::unordered_set<std::uint64_t>& springs,
+                               internal::Interior& interior) {
+  RigSummary& s = rig.summary_;
+  if (!rig.options_.interior) {
+    s.interior = "surface";
+    s.interior_reason = "interior disabled by the rig options: surface springs only";
+    interior.vertices = rig.rest_.vertices;
+    interior.surface_vertices = s.surface_vertices;
+    return;
+  }
+  internal::TetrahedralizeOptions tet_options;
+  tet_options.radius_edge_ratio = rig.options_.radius_edge_ratio;
+  tet_options.timeout_seconds = rig.options_.tetgen_timeout_seconds;
+  interior = internal::BuildInterior(rig.rest_.vertices, rig.rest_.faces, tet_options);
+  s.interior = interior.path == internal::Interior::Path::kClosed   ? "closed"
+               : interior.path == internal::Interior::Path::kCapped ? "capped"
+                                                                    : "surface";
+  s.interior_reason = interior.reason;
+  s.cap_vertices = interior.cap_vertices();
+  s.interior_vertices = interior.interior_vertices();
+  s.tetrahedra = static_cast<int>(interior.tets.rows());
+  rig.tets_ = interior.tets;
+  for (Eigen::Index t = 0; t < interior.tets.rows(); ++t) {
+    for (int i = 0; i < 4; ++i) {
+      for (int j = i + 1; j < 4; ++j) {
+        AddSpring(rig, springs, PairKey(interior.tets(t, i), interior.tets(t, j)), SpringKind::kInternal);
+      }
     }
   }
+}
 
-  // Incident springs per vertex.
+void RigBuilder::BuildIncidence(Rig& rig) {
+  const int n = rig.summary_.vertices;
+  const int m = static_cast<int>(rig.spring_a_.size());
+  rig.summary_.springs = m;
   rig.vertex_spring_offsets_.assign(n + 1, 0);
   for (int q = 0; q < m; ++q) {
     ++rig.vertex_spring_offsets_[rig.spring_a_[q] + 1];
@@ -228,6 +258,33 @@ void RigBuilder::BuildSprings(Rig& rig) {
   for (int q = 0; q < m; ++q) {
     rig.vertex_springs_[fill[rig.spring_a_[q]]++] = q;
     rig.vertex_springs_[fill[rig.spring_b_[q]]++] = q;
+  }
+}
+
+void RigBuilder::ComputeRestLengths(Rig& rig) {
+  const int m = static_cast<int>(rig.spring_a_.size());
+  auto lengths = [&](const Points& x, std::vector<double>& out) {
+    out.resize(m);
+    for (int q = 0; q < m; ++q) out[q] = (x.row(rig.spring_a_[q]) - x.row(rig.spring_b_[q])).norm();
+  };
+  lengths(rig.shapes_[0], rig.rest_length0_);
+  // The mean over mesh edges: the length scale of the stiffness floor and of tolerances.
+  double sum = 0.0;
+  int count = 0;
+  for (int q = 0; q < m; ++q) {
+    if (rig.spring_kind_[q] == SpringKind::kStructure) sum += rig.rest_length0_[q], ++count;
+  }
+  rig.summary_.mean_rest_length = sum / std::max(count, 1);
+  const double unchanged = 1e-12 * rig.summary_.mean_rest_length;
+  rig.rest_length_delta_.resize(rig.targets_.size());
+  rig.target_changes_lengths_.assign(rig.targets_.size(), 0);
+  for (size_t t = 0; t < rig.targets_.size(); ++t) {
+    std::vector<double>& d = rig.rest_length_delta_[t];
+    lengths(rig.shapes_[t + 1], d);
+    for (int q = 0; q < m; ++q) {
+      d[q] -= rig.rest_length0_[q];
+      if (std::abs(d[q]) > unchanged) rig.target_changes_lengths_[t] = 1;
+    }
   }
 }
 
@@ -322,10 +379,6 @@ void RigBuilder::BuildBoundary(Rig& rig) {
                   rig.rest_.source + ": all vertices are collinear; the rest shape spans no plane");
     }
     rig.gauge_ = gauge;
-    s.notes.push_back(fmt::format(
-        "no boundary condition: solved in the frame of vertices {}, {}, {} (a 3-2-1 gauge that adds no "
-        "force) and rigidly aligned onto the linear blendshape",
-        gauge[0], gauge[1], gauge[2]));
   } else {
     auto [gauge, off_line] = span(ids, ids.front());
     if (ids.size() >= 3 && off_line > 1e-6 * s.bounding_box_diagonal) {
@@ -337,6 +390,110 @@ void RigBuilder::BuildBoundary(Rig& rig) {
           "orientation the solve starts from",
           ids.size()));
     }
+  }
+}
+
+void RigBuilder::PlaceInterior(const std::shared_ptr<Rig>& rig, const internal::Interior& interior) {
+  RigSummary& s = rig->summary_;
+  const int surface = s.surface_vertices;
+  const int pinned = surface + interior.cap_vertices();  // the closed surface TetGen saw
+  const int n = s.vertices;
+  const int targets = static_cast<int>(rig->targets_.size());
+  const Points& rest = rig->shapes_[0];
+
+  // Start guesses: the target's surface and caps; interior points carried by the surface's best rigid fit.
+  for (int t = 0; t < targets; ++t) {
+    Points x(n, 3);
+    const Points& surface_t = rig->targets_[t].vertices;
+    x.topRows(surface) = surface_t;
+    x.middleRows(surface, interior.cap_vertices()) = internal::CapPositions(interior, surface_t);
+    if (n > pinned) {
+      const internal::AnchorMotion fit = internal::FitRigidMotion(rest.topRows(surface), surface_t);
+      const Eigen::Vector3d centroid = rest.topRows(surface).colwise().mean().transpose();
+      for (int v = pinned; v < n; ++v) x.row(v) = fit.Apply(rest.row(v).transpose(), centroid).transpose();
+    }
+    rig->shapes_[t + 1] = std::move(x);
+  }
+  if (n == pinned) return;
+
+  // The anchor: interior vertices near the centre of the volume (or where the user put it). It is the
+  // boundary condition of rigs that have none; fixed vertices, where a rig has them, already hold it.
+  if (rig->options_.anchor && rig->fixed_vertices_.empty()) {
+    Eigen::Vector3d center = Eigen::Vector3d::Zero();
+    if (rig->options_.anchor_center) {
+      center = Eigen::Vector3d((*rig->options_.anchor_center)[0], (*rig->options_.anchor_center)[1],
+                               (*rig->options_.anchor_center)[2]);
+    } else {
+      double volume = 0.0;
+      for (Eigen::Index t = 0; t < rig->tets_.rows(); ++t) {
+        const Eigen::Vector3d p0 = rest.row(rig->tets_(t, 0)).transpose();
+        const Eigen::Vector3d p1 = rest.row(rig->tets_(t, 1)).transpose();
+        const Eigen::Vector3d p2 = rest.row(rig->tets_(t, 2)).transpose();
+        const Eigen::Vector3d p3 = rest.row(rig->tets_(t, 3)).transpose();
+        const double v = (p1 - p0).dot((p2 - p0).cross(p3 - p0)) / 6.0;
+        center += v * (p0 + p1 + p2 + p3) / 4.0;
+        volume += v;
+      }
+      center /= volume;
+    }
+    std::vector<int> candidates(n - pinned);
+    std::iota(candidates.begin(), candidates.end(), pinned);
+    rig->anchor_ = internal::ChooseAnchor(rest, candidates, center, rig->options_.anchor_size);
+    if (rig->anchor_.empty()) {
+      s.notes.push_back("too few interior vertices for an anchor: none used");
+    }
+  }
+  Points anchor_rest(static_cast<Eigen::Index>(rig->anchor_.size()), 3);
+  for (size_t i = 0; i < rig->anchor_.size(); ++i) anchor_rest.row(static_cast<Eigen::Index>(i)) = rest.row(rig->anchor_[i]);
+  if (!rig->anchor_.empty()) rig->anchor_centroid_ = anchor_rest.colwise().mean().transpose();
+
+  // Each target's interior: fix its closed surface, solve with the rest shape's rest lengths (paper 3.4),
+  // make the anchor exactly rigid (Kabsch), and relax the interior once more around it. The rig is complete
+  // but for these positions, and a zero weight vector uses the rest shape's lengths only.
+  std::shared_ptr<const Rig> view = rig;
+  std::vector<Points> placed(targets);
+  std::vector<internal::AnchorMotion> motions(targets);
+  std::vector<char> converged(targets, 1);
+  tbb::parallel_for(0, targets, [&](int t) {
+    SolveOptions options;
+    options.max_iterations = 300;
+    Solver solver(view, options);
+    Frame frame{std::vector<double>(targets, 0.0), {}};
+    const Points& guess = rig->shapes_[t + 1];
+    for (int v = 0; v < pinned; ++v) frame.pins.push_back({v, guess.row(v).transpose()});
+    solver.SetWarmStart(guess);
+    Points ignored;
+    bool ok = solver.Solve(frame, &ignored).converged();
+    Points x = solver.all_positions();
+    if (!rig->anchor_.empty()) {
+      Points anchor_t(anchor_rest.rows(), 3);
+      for (size_t i = 0; i < rig->anchor_.size(); ++i) anchor_t.row(static_cast<Eigen::Index>(i)) = x.row(rig->anchor_[i]);
+      motions[t] = internal::FitRigidMotion(anchor_rest, anchor_t);
+      for (size_t i = 0; i < rig->anchor_.size(); ++i) {
+        const Eigen::Vector3d p = motions[t].Apply(anchor_rest.row(static_cast<Eigen::Index>(i)).transpose(),
+                                                   rig->anchor_centroid_);
+        frame.pins.push_back({rig->anchor_[i], p});
+      }
+      solver.SetWarmStart(x);
+      ok = solver.Solve(frame, &ignored).converged() && ok;
+      x = solver.all_positions();
+    }
+    converged[t] = ok ? 1 : 0;
+    placed[t] = std::move(x);
+  });
+  for (int t = 0; t < targets; ++t) {
+    rig->shapes_[t + 1] = std::move(placed[t]);
+    if (!converged[t]) {
+      ++s.unconverged_placements;
+      s.notes.push_back(fmt::format("the interior placement in target '{}' did not converge; its interior "
+                                    "is the best found (the target is still reproduced exactly)",
+                                    rig->targets_[t].name));
+    }
+  }
+  if (!rig->anchor_.empty()) {
+    rig->anchor_motions_ = std::move(motions);
+    s.anchor_vertices = static_cast<int>(rig->anchor_.size());
+    s.boundary_mode = BoundaryMode::kAnchored;
   }
 }
 
@@ -352,7 +509,6 @@ std::shared_ptr<const Rig> RigBuilder::Build(TriangleMesh rest, std::vector<Tria
   rig->targets_ = std::move(targets);
   RigSummary& s = rig->summary_;
   s.surface_vertices = static_cast<int>(rig->rest_.vertices.rows());
-  s.vertices = s.surface_vertices;
   s.faces = static_cast<int>(rig->rest_.faces.rows());
   s.targets = static_cast<int>(rig->targets_.size());
   s.polygons_split = rig->rest_.polygons_split;
@@ -361,7 +517,16 @@ std::shared_ptr<const Rig> RigBuilder::Build(TriangleMesh rest, std::vector<Tria
     throw Error(ErrorCode::kInvalidInput, rig->rest_.source + ": all vertices coincide");
   }
 
-  BuildSprings(*rig);
+  std::unordered_set<std::uint64_t> springs;
+  BuildSurfaceSprings(*rig, springs);
+  internal::Interior interior;
+  BuildInterior(*rig, springs, interior);
+  s.vertices = static_cast<int>(interior.vertices.rows());
+  rig->shapes_.assign(rig->targets_.size() + 1, Points());
+  rig->shapes_[0] = interior.vertices;
+  for (size_t t = 0; t < rig->targets_.size(); ++t) rig->shapes_[t + 1] = rig->shapes_[0];
+  BuildIncidence(*rig);
+  ComputeRestLengths(*rig);
   FindDegenerateFaces(*rig);
   BuildBoundary(*rig);
 
@@ -370,6 +535,15 @@ std::shared_ptr<const Rig> RigBuilder::Build(TriangleMesh rest, std::vector<Tria
   s.hessian_nonzeros = static_cast<std::int64_t>(rig->pattern_->matrix.row_indices.size());
   rig->cholesky_ = internal::SparseCholesky::Create(options.linear_solver);
   rig->cholesky_->Analyze(rig->pattern_->matrix);
+
+  PlaceInterior(rig, interior);
+  ComputeRestLengths(*rig);
+  if (s.boundary_mode == BoundaryMode::kFloating) {
+    s.notes.push_back(fmt::format(
+        "no boundary condition and no anchor: solved in the frame of vertices {}, {}, {} (a 3-2-1 gauge that "
+        "adds no force) and rigidly aligned onto the linear blendshape",
+        rig->gauge_[0], rig->gauge_[1], rig->gauge_[2]));
+  }
   s.precompute_ms = Elapsed(start);
   return rig;
 }

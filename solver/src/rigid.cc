@@ -27,10 +27,11 @@ bool ToCanonicalFrame(const std::array<int, 3>& g, Eigen::VectorXd* x) {
 
 void AlignRigidly(const Points& reference, Points* points) {
   Points& p = *points;
-  const Eigen::RowVector3d p_mean = p.colwise().mean();
+  const auto fitted = p.topRows(reference.rows());
+  const Eigen::RowVector3d p_mean = fitted.colwise().mean();
   const Eigen::RowVector3d r_mean = reference.colwise().mean();
   const Eigen::Matrix3d covariance =
-      (p.rowwise() - p_mean).transpose() * (reference.rowwise() - r_mean);
+      (fitted.rowwise() - p_mean).transpose() * (reference.rowwise() - r_mean);
   Eigen::JacobiSVD<Eigen::Matrix3d> svd(covariance, Eigen::ComputeFullU | Eigen::ComputeFullV);
   Eigen::Matrix3d correction = Eigen::Matrix3d::Identity();
   if ((svd.matrixV() * svd.matrixU().transpose()).determinant() < 0.0) correction(2, 2) = -1.0;

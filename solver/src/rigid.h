@@ -13,7 +13,8 @@ namespace springblend::internal {
 bool ToCanonicalFrame(const std::array<int, 3>& g, Eigen::VectorXd* x);
 
 // Replaces *points by R * points + t, with the proper rotation R and translation t that best match
-// `reference` in the least-squares sense (Kabsch).
+// `reference` in the least-squares sense (Kabsch). reference may have fewer rows than *points: the fit
+// uses the leading rows (the mesh vertices) and moves all.
 void AlignRigidly(const Points& reference, Points* points);
 
 }  // namespace springblend::internal

@@ -9,8 +9,10 @@
 #include <algorithm>
 #include <cmath>
 #include <limits>
+#include <optional>
 
 #include "hessian_pattern.h"
+#include "anchor.h"
 #include "rigid.h"
 #include "sparse_cholesky.h"
 #include "springblend/error.h"
@@ -82,6 +84,16 @@ Points LinearBlend(const Rig& rig, const std::vector<double>& weights) {
   return out;
 }
 
+Points LinearBlendAll(const Rig& rig, const std::vector<double>& weights) {
+  ValidateWeights(rig, weights);
+  const Points& rest = rig.shape(0);
+  Points out = rest;
+  for (int t = 0; t < rig.num_targets(); ++t) {
+    if (weights[t] != 0.0) out += weights[t] * (rig.shape(t + 1) - rest);
+  }
+  return out;
+}
+
 void BlendRestLengths(const Rig& rig, const std::vector<double>& weights, std::vector<double>* blended) {
   ValidateWeights(rig, weights);
   const std::vector<double>& r0 = rig.rest_lengths();
@@ -141,6 +153,16 @@ class Solver::Impl {
 
   SolveSummary Solve(const Frame& frame, Points* positions);
   void Reset() { has_previous_ = false; }
+  void SetWarmStart(const Points& all_vertices) {
+    if (all_vertices.rows() != rig_->num_vertices()) {
+      throw Error(ErrorCode::kInvalidInput,
+                  fmt::format("a warm start needs {} vertices, got {}", rig_->num_vertices(), all_vertices.rows()));
+    }
+    previous_ = all_vertices;
+    previous_motion_.reset();
+    has_previous_ = true;
+  }
+  const Points& all_positions() const { return previous_; }
 
   std::shared_ptr<const Rig> rig_;
   SolveOptions options_;
@@ -166,6 +188,7 @@ class Solver::Impl {
 
   Eigen::VectorXd x_, force_, step_, trial_;
   Points previous_;
+  std::optional<internal::AnchorMotion> previous_motion_;  // the anchor's motion in the previous frame
   bool has_previous_ = false;
 };
 
@@ -173,8 +196,8 @@ void Solver::Impl::PrepareFrame(const std::vector<double>& weights) {
   const Rig& rig = *rig_;
   BlendRestLengths(rig, weights, &rest_length_);
   const double floor = rig.options().min_stiffness_length * rig.summary().mean_rest_length;
-  const double kind_stiffness[kSpringKindCount] = {rig.options().structure_stiffness,
-                                                   rig.options().bending_stiffness};
+  const std::array<double, kSpringKindCount> kind_stiffness = {
+      rig.options().structure_stiffness, rig.options().bending_stiffness, rig.options().internal_stiffness};
   const auto& kinds = rig.spring_kind();
   for (int q = 0; q < rig.num_springs(); ++q) {
     stiffness_[q] = kind_stiffness[static_cast<int>(kinds[q])] / std::max(rest_length_[q], floor);
@@ -290,15 +313,58 @@ double Solver::Impl::Energy(const Eigen::VectorXd& x) const {
       [](double l, double r) { return l + r; });
 }
 
+namespace {
+
+// Whether points span a plane (three or more, not all on one line), so holding them removes every rigid
+// motion.
+bool SpansRigidly(const std::vector<Eigen::Vector3d>& points, double scale) {
+  if (points.size() < 3) return false;
+  const Eigen::Vector3d& p0 = points[0];
+  size_t far = 0;
+  for (size_t i = 1; i < points.size(); ++i) {
+    if ((points[i] - p0).squaredNorm() > (points[far] - p0).squaredNorm()) far = i;
+  }
+  const Eigen::Vector3d axis = points[far] - p0;
+  if (axis.norm() <= 1e-9 * scale) return false;
+  for (const auto& p : points) {
+    if ((p - p0).cross(axis).norm() > 1e-6 * scale * axis.norm()) return true;
+  }
+  return false;
+}
+
+int CountInvertedTetrahedra(const Tetrahedra& tets, const Eigen::VectorXd& x) {
+  int inverted = 0;
+  for (Eigen::Index t = 0; t < tets.rows(); ++t) {
+    const Eigen::Vector3d p0 = x.segment<3>(3 * tets(t, 0));
+    const double volume = (x.segment<3>(3 * tets(t, 1)) - p0)
+                              .dot((x.segment<3>(3 * tets(t, 2)) - p0).cross(x.segment<3>(3 * tets(t, 3)) - p0));
+    if (volume <= 0.0) ++inverted;
+  }
+  return inverted;
+}
+
+}  // namespace
+
 SolveSummary Solver::Impl::Solve(const Frame& frame, Points* positions) {
   const auto start = std::chrono::steady_clock::now();
   const Rig& rig = *rig_;
   SolveSummary summary;
-  const Points linear = LinearBlend(rig, frame.weights);  // validates the weights
   const int n = rig.num_vertices();
-  summary.fixed_vertices = static_cast<int>(rig.fixed_vertices().size());
+  const double diagonal = rig.summary().bounding_box_diagonal;
+  const Points linear = LinearBlendAll(rig, frame.weights);  // validates the weights
+  for (size_t i = 0; i < frame.pins.size(); ++i) {
+    const Pin& pin = frame.pins[i];
+    if (pin.vertex < 0 || pin.vertex >= n) {
+      throw Error(ErrorCode::kInvalidInput, fmt::format("pins[{}].vertex = {} is not a vertex (the rig has {})",
+                                                        i, pin.vertex, n));
+    }
+    if (!pin.position.allFinite()) {
+      throw Error(ErrorCode::kInvalidInput, fmt::format("pins[{}] (vertex {}) has a non-finite position", i, pin.vertex));
+    }
+  }
+  summary.pins = static_cast<int>(frame.pins.size());
   if (options_.linear) {
-    *positions = linear;
+    *positions = linear.topRows(rig.num_surface_vertices());
     summary.termination = Termination::kLinear;
     summary.message = "linear blendshape";
     summary.solve_ms = Elapsed(start);
@@ -306,18 +372,52 @@ SolveSummary Solver::Impl::Solve(const Frame& frame, Points* positions) {
   }
   PrepareFrame(frame.weights);
 
-  // Start: the previous frame's equilibrium (warm start) or the linear blendshape; fixed vertices go to
-  // their linearly blended positions.
-  const Points& initial = (options_.warm_start && has_previous_) ? previous_ : linear;
-  x_.resize(3 * n);
-  for (int v = 0; v < n; ++v) x_.segment<3>(3 * v) = initial.row(v).transpose();
+  // Boundary conditions of this frame: fixed vertices follow the linear blend, the anchor its blended
+  // rigid motion, pins their positions.
   std::fill(fixed_dof_.begin(), fixed_dof_.end(), 0);
-  for (int v : rig.fixed_vertices()) {
-    x_.segment<3>(3 * v) = linear.row(v).transpose();
+  std::vector<std::pair<int, Eigen::Vector3d>> held;
+  for (int v : rig.fixed_vertices()) held.emplace_back(v, linear.row(v).transpose());
+  std::optional<internal::AnchorMotion> motion;
+  if (rig.boundary_mode() == BoundaryMode::kAnchored) {
+    motion = internal::BlendAnchorMotions(rig.anchor_motions(), frame.weights);
+    for (int v : rig.anchor_vertices()) {
+      held.emplace_back(v, motion->Apply(rig.shape(0).row(v).transpose(), rig.anchor_centroid()));
+    }
+  }
+  for (const Pin& pin : frame.pins) held.emplace_back(pin.vertex, pin.position);
+  std::vector<Eigen::Vector3d> held_points;
+  for (const auto& h : held) held_points.push_back(h.second);
+  BoundaryMode mode = rig.boundary_mode();
+  if (mode != BoundaryMode::kAnchored && mode != BoundaryMode::kFixedVertices) {
+    mode = SpansRigidly(held_points, diagonal) ? BoundaryMode::kFixedVertices
+           : held.empty()                      ? BoundaryMode::kFloating
+                                               : BoundaryMode::kPartiallyFixed;
+  }
+
+  // Start: the previous frame's equilibrium (warm start; carried along with the anchor's motion since
+  // then) or the linear blendshape; then the held vertices go to their positions.
+  x_.resize(3 * n);
+  if (options_.warm_start && has_previous_) {
+    for (int v = 0; v < n; ++v) x_.segment<3>(3 * v) = previous_.row(v).transpose();
+    if (motion && previous_motion_) {
+      // x -> M_now(M_before^-1(x)), both about the anchor's rest centroid.
+      const Eigen::Vector3d& c = rig.anchor_centroid();
+      const Eigen::Quaterniond relative = motion->rotation * previous_motion_->rotation.inverse();
+      for (int v = 0; v < n; ++v) {
+        const Eigen::Vector3d local = x_.segment<3>(3 * v) - c - previous_motion_->offset;
+        x_.segment<3>(3 * v) = relative * local + c + motion->offset;
+      }
+    }
+  } else {
+    for (int v = 0; v < n; ++v) x_.segment<3>(3 * v) = linear.row(v).transpose();
+  }
+  for (const auto& [v, p] : held) {
+    x_.segment<3>(3 * v) = p;
     fixed_dof_[3 * v] = fixed_dof_[3 * v + 1] = fixed_dof_[3 * v + 2] = 1;
   }
+  summary.fixed_vertices = static_cast<int>(std::count(fixed_dof_.begin(), fixed_dof_.end(), 1) / 3);
   diagonal_shift_ = 0.0;
-  if (rig.boundary_mode() == BoundaryMode::kFloating) {
+  if (mode == BoundaryMode::kFloating) {
     // 3-2-1 gauge: move the start rigidly so gauge vertex 0 is at the origin, 1 on the x axis and 2 in
     // the xy plane, then hold exactly those six coordinates. Any configuration can be moved so, hence the
     // gauge removes the rigid motions without adding a force.
@@ -331,11 +431,11 @@ SolveSummary Solver::Impl::Solve(const Frame& frame, Points* positions) {
     fixed_dof_[3 * g[0]] = fixed_dof_[3 * g[0] + 1] = fixed_dof_[3 * g[0] + 2] = 1;
     fixed_dof_[3 * g[1] + 1] = fixed_dof_[3 * g[1] + 2] = 1;
     fixed_dof_[3 * g[2] + 2] = 1;
-  } else if (rig.boundary_mode() == BoundaryMode::kPartiallyFixed) {
+  } else if (mode == BoundaryMode::kPartiallyFixed) {
     diagonal_shift_ = 1e-8 / rig.summary().mean_rest_length;
   }
 
-  const double diagonal = rig.summary().bounding_box_diagonal;
+
   const bool try_true = options_.hessian == HessianMode::kTrueWithProjectedFallback;
   absolute_projection_ = options_.hessian == HessianMode::kAbsolute;
   int tiny_steps = 0;
@@ -463,13 +563,15 @@ SolveSummary Solver::Impl::Solve(const Frame& frame, Points* positions) {
   summary.residual = residual;
   summary.energy = energy;
 
+  summary.inverted_tetrahedra = CountInvertedTetrahedra(rig.tetrahedra(), x_);
   Points solved(n, 3);
   for (int v = 0; v < n; ++v) solved.row(v) = x_.segment<3>(3 * v).transpose();
-  if (rig.boundary_mode() == BoundaryMode::kFloating) {
-    internal::AlignRigidly(linear, &solved);
+  if (mode == BoundaryMode::kFloating) {
+    internal::AlignRigidly(linear.topRows(rig.num_surface_vertices()), &solved);
   }
   if (summary.termination != Termination::kNumericalFailure) {
     previous_ = solved;
+    previous_motion_ = motion;
     has_previous_ = true;
   } else {
     has_previous_ = false;  // never warm-start from a broken state
@@ -490,6 +592,8 @@ SolveSummary Solver::Solve(const Frame& frame, Points* positions) {
   return impl_->Solve(frame, positions);
 }
 void Solver::Reset() { impl_->Reset(); }
+void Solver::SetWarmStart(const Points& all_vertices) { impl_->SetWarmStart(all_vertices); }
+const Points& Solver::all_positions() const { return impl_->all_positions(); }
 const Rig& Solver::rig() const { return *impl_->rig_; }
 const SolveOptions& Solver::options() const { return impl_->options_; }
 void Solver::set_options(const SolveOptions& options) {

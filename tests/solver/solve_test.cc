@@ -85,10 +85,10 @@ INSTANTIATE_TEST_SUITE_P(
         RigCase{"cylinder/cylinder.obj",
                 {"cylinder/poses-2_cylinder-1.obj", "cylinder/poses-2_cylinder-4.obj"},
                 BoundaryMode::kFixedVertices},
-        RigCase{"cylinder/cylinder.obj", {"cylinder/poses-1_cylinder-2.obj"}, BoundaryMode::kFloating},
+        RigCase{"cylinder/cylinder.obj", {"cylinder/poses-1_cylinder-2.obj"}, BoundaryMode::kAnchored},
         RigCase{"cube/cube.obj", {"cube/poses-1_cube-1.obj"}, BoundaryMode::kFixedVertices},
         RigCase{"cube/cube.obj", {"cube/poses-1_cube-4.obj", "cube/poses-2_cube-1.obj"},
-                BoundaryMode::kFloating}));
+                BoundaryMode::kAnchored}));
 
 TEST(Sweep, EndsExactlyOnTheTargetWithEveryFrameInEquilibrium) {
   auto rig = LoadRig("cylinder/cylinder.obj", {"cylinder/poses-2_cylinder-1.obj"});

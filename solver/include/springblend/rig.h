@@ -7,6 +7,7 @@
 #include <array>
 #include <cstdint>
 #include <memory>
+#include <optional>
 #include <string>
 #include <vector>
 
@@ -14,16 +15,20 @@
 
 namespace springblend {
 
+using Tetrahedra = Eigen::Matrix<int, Eigen::Dynamic, 4, Eigen::RowMajor>;  // #T by 4, 0-based
+
 namespace internal {
 struct HessianPattern;
 class SparseCholesky;
+struct AnchorMotion;
 }  // namespace internal
 
 enum class SpringKind : std::uint8_t {
   kStructure = 0,  // a mesh edge
   kBending = 1,    // the two vertices opposite an interior edge (distance-2 neighbours)
+  kInternal = 2,   // an edge of the tetrahedralized volume that is not already a spring
 };
-constexpr int kSpringKindCount = 2;
+constexpr int kSpringKindCount = 3;
 const char* ToString(SpringKind kind);
 
 enum class LinearSolverType {
@@ -45,11 +50,25 @@ struct RigOptions {
   // with a floor so near-zero springs such as touching lips do not dominate the system). Range (0, 1].
   double structure_stiffness = 1.0;
   double bending_stiffness = 1.0;
+  double internal_stiffness = 1.0;
   double min_stiffness_length = 0.1;
   // Blended rest lengths are clamped from below to this fraction of the spring's rest-shape length, so
   // weights outside [0, 1] never produce a non-positive rest length. Range (0, 1).
   double min_rest_length_fraction = 0.01;
   LinearSolverType linear_solver = LinearSolverType::kCholmodSupernodal;
+
+  // Volume (paper 3.1): tetrahedralize the rest surface with TetGen (open boundaries are capped first) and
+  // add the tetrahedra's edges as internal springs. A surface TetGen cannot take falls back to surface
+  // springs, and the summary says why.
+  bool interior = true;
+  double radius_edge_ratio = 2.0;   // TetGen quality bound (-q); > 1, smaller gives more interior points
+  double tetgen_timeout_seconds = 120.0;
+  // The internal anchor (paper 3.4): `anchor_size` interior vertices near `anchor_center` (default: the
+  // centre of the volume) move rigidly with the blended transform and are the boundary condition, so every
+  // surface vertex moves freely. Needs the interior.
+  bool anchor = true;
+  int anchor_size = 8;
+  std::optional<std::array<double, 3>> anchor_center;
 
   // Throws Error(kInvalidInput) naming the field that is out of range.
   void Validate() const;
@@ -62,16 +81,24 @@ enum class BoundaryMode {
                     // solve keeps the start's orientation (a tiny Hessian shift removes the null space)
   kFloating,        // nothing fixed: solved in a canonical frame (3-2-1 gauge on three vertices, which
                     // adds no force), then rigidly aligned (Kabsch) onto the linear blendshape
+  kAnchored,        // the internal anchor moves by the blended rigid transform (plus any fixed vertices)
 };
 const char* ToString(BoundaryMode mode);
 
 struct RigSummary {
   int surface_vertices = 0;
-  int vertices = 0;  // all simulated vertices (surface now; interior and anchor vertices later)
+  int vertices = 0;  // all simulated vertices: surface, cap and interior (anchor vertices are interior)
   int faces = 0;
   int targets = 0;
   int springs = 0;
-  int springs_by_kind[kSpringKindCount] = {0, 0};
+  int springs_by_kind[kSpringKindCount] = {0, 0, 0};
+  int interior_vertices = 0;  // TetGen's Steiner points inside the volume
+  int cap_vertices = 0;       // one per hole closed before tetrahedralizing
+  int anchor_vertices = 0;
+  int tetrahedra = 0;
+  std::string interior;         // "closed", "capped" or "surface"
+  std::string interior_reason;  // why, in words
+  int unconverged_placements = 0;  // targets whose interior placement solve did not converge
   int static_vertices = 0;  // detected automatically
   int user_fixed_vertices = 0;
   BoundaryMode boundary_mode = BoundaryMode::kFloating;
@@ -102,6 +129,13 @@ class Rig {
   int num_vertices() const { return summary_.vertices; }
   int num_surface_vertices() const { return summary_.surface_vertices; }
   int num_targets() const { return static_cast<int>(targets_.size()); }
+  // Positions of every simulated vertex (#vertices by 3) in shape s: 0 is the rest shape, t + 1 target t.
+  // Rows [0, surface) are the mesh; then cap and interior vertices, placed in each target by a solve.
+  const Points& shape(int s) const { return shapes_[s]; }
+  // Tetrahedra of the rest volume (positively oriented in the rest shape); empty without an interior.
+  const Tetrahedra& tetrahedra() const { return tets_; }
+  // The anchor: vertex ids, their rest positions' centroid, and each target's rigid motion of them.
+  const std::vector<int>& anchor_vertices() const { return anchor_; }
   int num_springs() const { return static_cast<int>(spring_a_.size()); }
   const TriangleMesh& rest() const { return rest_; }
   const TriangleMesh& target(int t) const { return targets_[t]; }
@@ -126,6 +160,9 @@ class Rig {
   const std::vector<int>& vertex_spring_offsets() const { return vertex_spring_offsets_; }
   const std::vector<int>& vertex_springs() const { return vertex_springs_; }
 
+  const Eigen::Vector3d& anchor_centroid() const { return anchor_centroid_; }
+  const std::vector<internal::AnchorMotion>& anchor_motions() const { return anchor_motions_; }
+
   const internal::HessianPattern& hessian_pattern() const { return *pattern_; }
   // The symbolic factorization, analysed once; solvers clone it and only refactor numerically.
   const internal::SparseCholesky& analyzed_cholesky() const { return *cholesky_; }
@@ -138,6 +175,11 @@ class Rig {
   RigSummary summary_;
   TriangleMesh rest_;
   std::vector<TriangleMesh> targets_;
+  std::vector<Points> shapes_;
+  Tetrahedra tets_;
+  std::vector<int> anchor_;
+  Eigen::Vector3d anchor_centroid_ = Eigen::Vector3d::Zero();
+  std::vector<internal::AnchorMotion> anchor_motions_;
   std::vector<int> spring_a_, spring_b_;
   std::vector<SpringKind> spring_kind_;
   std::vector<double> rest_length0_;

@@ -16,8 +16,15 @@ namespace springblend {
 // One frame's request. weights has one entry per target, in the rig's target order; the rest shape takes
 // the remainder 1 - sum(weights). That covers the paper's two-shape alpha ({alpha}), a convex combination
 // of many shapes, and the delta weights of face rigs. Weights outside [0, 1] are allowed.
+struct Pin {
+  int vertex = -1;  // a simulated vertex: a mesh vertex (0-based), or an interior one (Rig::shape rows)
+  Eigen::Vector3d position = Eigen::Vector3d::Zero();
+};
+
 struct Frame {
   std::vector<double> weights;
+  // Vertices dragged to a position for this frame (paper Fig. 5): boundary conditions like fixed vertices.
+  std::vector<Pin> pins;
 };
 
 enum class HessianMode {
@@ -73,7 +80,9 @@ struct SolveSummary {
   double residual = 0.0;  // final largest force on a free degree of freedom (strain units)
   double last_step = 0.0;  // last Newton step's largest coordinate change, fraction of the diagonal
   double energy = 0.0;    // final spring energy
-  int fixed_vertices = 0;
+  int fixed_vertices = 0;      // boundary conditions in this frame: fixed, anchor and pinned vertices
+  int pins = 0;
+  int inverted_tetrahedra = 0;  // tetrahedra turned inside out in the solution (paper section 5's limit)
   double solve_ms = 0.0;
   double factorize_ms = 0.0;
 
@@ -85,8 +94,10 @@ struct SolveSummary {
 // Checks a weight vector against the rig: right length, finite entries. Throws Error naming the entry.
 void ValidateWeights(const Rig& rig, const std::vector<double>& weights);
 
-// The linear blendshape: rest + sum_t w_t (target_t - rest), #V by 3.
+// The linear blendshape: rest + sum_t w_t (target_t - rest) of the mesh vertices, #surface vertices by 3.
 Points LinearBlend(const Rig& rig, const std::vector<double>& weights);
+// The same for every simulated vertex (#rig vertices by 3).
+Points LinearBlendAll(const Rig& rig, const std::vector<double>& weights);
 
 // Blended rest lengths r̄_q = r_q^0 + sum_t w_t (r_q^t - r_q^0), clamped from below (see RigOptions).
 void BlendRestLengths(const Rig& rig, const std::vector<double>& weights, std::vector<double>* blended);
@@ -104,6 +115,10 @@ class Solver {
 
   // Forget the warm start: the next frame starts from the linear blendshape.
   void Reset();
+  // Start the next frame from these positions of every simulated vertex (#rig vertices by 3).
+  void SetWarmStart(const Points& all_vertices);
+  // The last solution including cap and interior vertices (#rig vertices by 3); empty before a solve.
+  const Points& all_positions() const;
 
   const Rig& rig() const;
   const SolveOptions& options() const;
