@@ -15,8 +15,13 @@
 #include "sparse_cholesky.h"
 #include "anchor.h"
 #include "interior.h"
+#include "rigid.h"
 #include "springblend/solve.h"
 #include <tbb/parallel_for.h>
+
+#include <Eigen/Sparse>
+#include <Eigen/SparseCholesky>
+#include <optional>
 #include "springblend/error.h"
 
 namespace springblend {
@@ -401,16 +406,43 @@ void RigBuilder::PlaceInterior(const std::shared_ptr<Rig>& rig, const internal::
   const int targets = static_cast<int>(rig->targets_.size());
   const Points& rest = rig->shapes_[0];
 
-  // Start guesses: the target's surface and caps; interior points carried by the surface's best rigid fit.
+  // Start guesses: the target's surface and caps; the interior displaced by the harmonic extension of the
+  // surface's displacement (uniform weights over the springs), which rarely inverts a tetrahedron where a
+  // rigid carry-over of the interior would on large deformations.
+  std::optional<Eigen::SimplicialLDLT<Eigen::SparseMatrix<double>>> laplacian;
+  Eigen::SparseMatrix<double> coupling;  // interior rows, pinned columns
+  if (n > pinned) {
+    std::vector<Eigen::Triplet<double>> inner, outer;
+    for (int q = 0; q < static_cast<int>(rig->spring_a_.size()); ++q) {
+      const int ends[2] = {rig->spring_a_[q], rig->spring_b_[q]};
+      for (int e = 0; e < 2; ++e) {
+        const int i = ends[e], j = ends[1 - e];
+        if (i < pinned) continue;
+        inner.emplace_back(i - pinned, i - pinned, 1.0);
+        if (j >= pinned) {
+          inner.emplace_back(i - pinned, j - pinned, -1.0);
+        } else {
+          outer.emplace_back(i - pinned, j, -1.0);
+        }
+      }
+    }
+    Eigen::SparseMatrix<double> l(n - pinned, n - pinned);
+    l.setFromTriplets(inner.begin(), inner.end());
+    coupling.resize(n - pinned, pinned);
+    coupling.setFromTriplets(outer.begin(), outer.end());
+    laplacian.emplace(l);
+  }
   for (int t = 0; t < targets; ++t) {
     Points x(n, 3);
     const Points& surface_t = rig->targets_[t].vertices;
     x.topRows(surface) = surface_t;
     x.middleRows(surface, interior.cap_vertices()) = internal::CapPositions(interior, surface_t);
-    if (n > pinned) {
-      const internal::AnchorMotion fit = internal::FitRigidMotion(rest.topRows(surface), surface_t);
-      const Eigen::Vector3d centroid = rest.topRows(surface).colwise().mean().transpose();
-      for (int v = pinned; v < n; ++v) x.row(v) = fit.Apply(rest.row(v).transpose(), centroid).transpose();
+    if (n > pinned && laplacian->info() == Eigen::Success) {
+      const Eigen::MatrixXd moved = x.topRows(pinned) - rest.topRows(pinned);
+      const Eigen::MatrixXd inner_moved = laplacian->solve(-(coupling * moved));
+      x.bottomRows(n - pinned) = rest.bottomRows(n - pinned) + inner_moved;
+    } else {
+      x.bottomRows(n - pinned) = rest.bottomRows(n - pinned);
     }
     rig->shapes_[t + 1] = std::move(x);
   }
@@ -489,6 +521,15 @@ void RigBuilder::PlaceInterior(const std::shared_ptr<Rig>& rig, const internal::
                                     "is the best found (the target is still reproduced exactly)",
                                     rig->targets_[t].name));
     }
+  }
+  for (int t = 0; t < targets; ++t) {
+    s.inverted_tetrahedra_in_targets += internal::CountInvertedTetrahedra(rig->tets_, rig->shapes_[t + 1]);
+  }
+  if (s.inverted_tetrahedra_in_targets > 0) {
+    s.notes.push_back(fmt::format(
+        "{} tetrahedra are inverted in the targets' placed interiors (a spring system does not resist "
+        "inversion; the paper's section 5 limit)",
+        s.inverted_tetrahedra_in_targets));
   }
   if (!rig->anchor_.empty()) {
     rig->anchor_motions_ = std::move(motions);

@@ -1,6 +1,7 @@
 #include "rigid.h"
 
 #include <Eigen/Dense>
+#include <Eigen/Geometry>
 #include <Eigen/SVD>
 
 namespace springblend::internal {
@@ -37,6 +38,28 @@ void AlignRigidly(const Points& reference, Points* points) {
   if ((svd.matrixV() * svd.matrixU().transpose()).determinant() < 0.0) correction(2, 2) = -1.0;
   const Eigen::Matrix3d rotation = svd.matrixV() * correction * svd.matrixU().transpose();
   p = ((p.rowwise() - p_mean) * rotation.transpose()).rowwise() + r_mean;
+}
+
+namespace {
+template <typename Position>
+int CountInverted(const Tetrahedra& tets, Position position) {
+  int inverted = 0;
+  for (Eigen::Index t = 0; t < tets.rows(); ++t) {
+    const Eigen::Vector3d p0 = position(tets(t, 0));
+    const double volume =
+        (position(tets(t, 1)) - p0).dot((position(tets(t, 2)) - p0).cross(position(tets(t, 3)) - p0));
+    if (volume <= 0.0) ++inverted;
+  }
+  return inverted;
+}
+}  // namespace
+
+int CountInvertedTetrahedra(const Tetrahedra& tets, const Eigen::VectorXd& x) {
+  return CountInverted(tets, [&](int v) -> Eigen::Vector3d { return x.segment<3>(3 * v); });
+}
+
+int CountInvertedTetrahedra(const Tetrahedra& tets, const Points& x) {
+  return CountInverted(tets, [&](int v) -> Eigen::Vector3d { return x.row(v).transpose(); });
 }
 
 }  // namespace springblend::internal

@@ -4,7 +4,7 @@
 #include <Eigen/Core>
 #include <array>
 
-#include "springblend/mesh.h"
+#include "springblend/rig.h"
 
 namespace springblend::internal {
 
@@ -16,5 +16,10 @@ bool ToCanonicalFrame(const std::array<int, 3>& g, Eigen::VectorXd* x);
 // `reference` in the least-squares sense (Kabsch). reference may have fewer rows than *points: the fit
 // uses the leading rows (the mesh vertices) and moves all.
 void AlignRigidly(const Points& reference, Points* points);
+
+// Tetrahedra (#T by 4 vertex ids, positively oriented at rest) whose signed volume in positions x
+// (stacked 3n, or #V by 3) is not positive.
+int CountInvertedTetrahedra(const Tetrahedra& tets, const Eigen::VectorXd& x);
+int CountInvertedTetrahedra(const Tetrahedra& tets, const Points& x);
 
 }  // namespace springblend::internal

@@ -176,7 +176,25 @@ class Solver::Impl {
   double Assemble(const Eigen::VectorXd& x, double negative_scale, double shift = kNoHessian);
   double Energy(const Eigen::VectorXd& x) const;
 
+  // Factorize and solve the system of this frame: the full matrix with identity rows for held coordinates,
+  // or, when many coordinates are held, the matrix reduced to the free ones.
+  internal::FactorStatus Factorize();
+  void SolveLinear(const Eigen::VectorXd& rhs, Eigen::VectorXd* x);
+  void ChooseLinearSystem();
+
   std::unique_ptr<internal::SparseCholesky> cholesky_;
+  // The system reduced to the free coordinates, analysed once per set of held coordinates.
+  struct Reduced {
+    std::vector<char> held;  // the fixed_dof_ mask it was built for
+    internal::SymmetricPattern pattern;
+    std::vector<int> gather;  // reduced entry -> full value slot
+    std::vector<int> dofs;    // reduced unknown -> full coordinate
+    std::unique_ptr<internal::SparseCholesky> cholesky;
+    std::vector<double> values;
+    Eigen::VectorXd rhs, solution;
+  };
+  std::unique_ptr<Reduced> reduced_;
+  bool use_reduced_ = false;
   std::vector<double> rest_length_;  // r̄ for this frame
   std::vector<double> stiffness_;    // k_q for this frame
   std::vector<double> values_;
@@ -296,6 +314,62 @@ double Solver::Impl::Assemble(const Eigen::VectorXd& x, double negative_scale, d
       [](double l, double r) { return std::max(l, r); });
 }
 
+void Solver::Impl::ChooseLinearSystem() {
+  // Holding a few coordinates (the anchor, a gauge) costs nothing in the full system; holding many (a
+  // placement solve pins the whole surface, contacts and pins pile up) makes a smaller system worthwhile.
+  const size_t held = static_cast<size_t>(std::count(fixed_dof_.begin(), fixed_dof_.end(), 1));
+  use_reduced_ = held * 10 > fixed_dof_.size();
+  if (!use_reduced_ || (reduced_ && reduced_->held == fixed_dof_)) return;
+  const internal::SymmetricPattern& full = rig_->hessian_pattern().matrix;
+  auto reduced = std::make_unique<Reduced>();
+  reduced->held = fixed_dof_;
+  std::vector<int> index(full.n, -1);
+  for (int d = 0; d < full.n; ++d) {
+    if (!fixed_dof_[d]) {
+      index[d] = static_cast<int>(reduced->dofs.size());
+      reduced->dofs.push_back(d);
+    }
+  }
+  internal::SymmetricPattern& p = reduced->pattern;
+  p.n = static_cast<int>(reduced->dofs.size());
+  p.column_starts.reserve(p.n + 1);
+  for (int j : reduced->dofs) {
+    p.column_starts.push_back(static_cast<int>(p.row_indices.size()));
+    for (int k = full.column_starts[j]; k < full.column_starts[j + 1]; ++k) {
+      const int i = full.row_indices[k];
+      if (index[i] < 0) continue;
+      p.row_indices.push_back(index[i]);  // index is increasing, so rows stay sorted
+      reduced->gather.push_back(k);
+    }
+  }
+  p.column_starts.push_back(static_cast<int>(p.row_indices.size()));
+  reduced->cholesky = internal::SparseCholesky::Create(rig_->options().linear_solver);
+  reduced->cholesky->Analyze(reduced->pattern);
+  reduced->values.resize(reduced->gather.size());
+  reduced->rhs.resize(p.n);
+  reduced->solution.resize(p.n);
+  reduced_ = std::move(reduced);
+}
+
+internal::FactorStatus Solver::Impl::Factorize() {
+  if (!use_reduced_) return cholesky_->Factorize(values_.data());
+  Reduced& r = *reduced_;
+  for (size_t e = 0; e < r.gather.size(); ++e) r.values[e] = values_[r.gather[e]];
+  return r.cholesky->Factorize(r.values.data());
+}
+
+void Solver::Impl::SolveLinear(const Eigen::VectorXd& rhs, Eigen::VectorXd* x) {
+  if (!use_reduced_) {
+    cholesky_->Solve(rhs.data(), x->data());
+    return;
+  }
+  Reduced& r = *reduced_;
+  for (size_t i = 0; i < r.dofs.size(); ++i) r.rhs[static_cast<Eigen::Index>(i)] = rhs[r.dofs[i]];
+  r.cholesky->Solve(r.rhs.data(), r.solution.data());
+  x->setZero();
+  for (size_t i = 0; i < r.dofs.size(); ++i) (*x)[r.dofs[i]] = r.solution[static_cast<Eigen::Index>(i)];
+}
+
 double Solver::Impl::Energy(const Eigen::VectorXd& x) const {
   const Rig& rig = *rig_;
   const int* a = rig.spring_a().data();
@@ -330,17 +404,6 @@ bool SpansRigidly(const std::vector<Eigen::Vector3d>& points, double scale) {
     if ((p - p0).cross(axis).norm() > 1e-6 * scale * axis.norm()) return true;
   }
   return false;
-}
-
-int CountInvertedTetrahedra(const Tetrahedra& tets, const Eigen::VectorXd& x) {
-  int inverted = 0;
-  for (Eigen::Index t = 0; t < tets.rows(); ++t) {
-    const Eigen::Vector3d p0 = x.segment<3>(3 * tets(t, 0));
-    const double volume = (x.segment<3>(3 * tets(t, 1)) - p0)
-                              .dot((x.segment<3>(3 * tets(t, 2)) - p0).cross(x.segment<3>(3 * tets(t, 3)) - p0));
-    if (volume <= 0.0) ++inverted;
-  }
-  return inverted;
 }
 
 }  // namespace
@@ -436,6 +499,7 @@ SolveSummary Solver::Impl::Solve(const Frame& frame, Points* positions) {
   }
 
 
+  ChooseLinearSystem();
   const bool try_true = options_.hessian == HessianMode::kTrueWithProjectedFallback;
   absolute_projection_ = options_.hessian == HessianMode::kAbsolute;
   int tiny_steps = 0;
@@ -485,7 +549,7 @@ SolveSummary Solver::Impl::Solve(const Frame& frame, Points* positions) {
     for (size_t i = try_true ? 0 : 2; i < attempts.size(); ++i) {
       const Attempt& attempt = attempts[i];
       Assemble(x_, attempt.negative_scale, attempt.shift);
-      status = cholesky_->Factorize(values_.data());
+      status = Factorize();
       ++summary.factorizations;
       if (attempt.negative_scale < 1.0) ++summary.projected_factorizations;
       if (attempt.shift > 0.0) ++summary.shifted_factorizations;
@@ -497,7 +561,7 @@ SolveSummary Solver::Impl::Solve(const Frame& frame, Points* positions) {
       summary.message = "the Hessian could not be factorized even with a diagonal shift";
       break;
     }
-    cholesky_->Solve(force_.data(), step_.data());
+    SolveLinear(force_, &step_);
     if (!step_.allFinite()) {
       summary.termination = Termination::kNumericalFailure;
       summary.message = "the Newton step is not finite";
@@ -563,7 +627,7 @@ SolveSummary Solver::Impl::Solve(const Frame& frame, Points* positions) {
   summary.residual = residual;
   summary.energy = energy;
 
-  summary.inverted_tetrahedra = CountInvertedTetrahedra(rig.tetrahedra(), x_);
+  summary.inverted_tetrahedra = internal::CountInvertedTetrahedra(rig.tetrahedra(), x_);
   Points solved(n, 3);
   for (int v = 0; v < n; ++v) solved.row(v) = x_.segment<3>(3 * v).transpose();
   if (mode == BoundaryMode::kFloating) {

@@ -99,6 +99,7 @@ struct RigSummary {
   std::string interior;         // "closed", "capped" or "surface"
   std::string interior_reason;  // why, in words
   int unconverged_placements = 0;  // targets whose interior placement solve did not converge
+  int inverted_tetrahedra_in_targets = 0;  // summed over the targets' placed interiors
   int static_vertices = 0;  // detected automatically
   int user_fixed_vertices = 0;
   BoundaryMode boundary_mode = BoundaryMode::kFloating;
