@@ -2,6 +2,8 @@
 #include <fmt/format.h>
 
 #include <filesystem>
+#include <fstream>
+#include <sstream>
 #include <iostream>
 #include <memory>
 #include <nlohmann/json.hpp>
@@ -9,6 +11,7 @@
 #include <vector>
 
 #include "commands.h"
+#include "springblend/collider.h"
 #include "springblend/error.h"
 #include "springblend/mesh.h"
 #include "springblend/rig.h"
@@ -36,7 +39,101 @@ struct BlendArgs {
   std::string hessian = "true";
   bool no_warm_start = false;
   bool verbose = false;
+  std::vector<std::string> colliders;
+  std::vector<std::string> pins;
+  std::string frames_file;
 };
+
+// "VERTEX:x,y,z" -> a pin.
+Pin ParsePin(const std::string& spec) {
+  const auto colon = spec.find(':');
+  Pin pin;
+  try {
+    if (colon == std::string::npos) throw std::invalid_argument("no colon");
+    size_t used = 0;
+    pin.vertex = std::stoi(spec.substr(0, colon), &used);
+    if (used != colon) throw std::invalid_argument("vertex");
+    std::stringstream in(spec.substr(colon + 1));
+    std::string item;
+    for (int c = 0; c < 3; ++c) {
+      if (!std::getline(in, item, ',')) throw std::invalid_argument("too few");
+      pin.position[c] = std::stod(item, &used);
+      if (used != item.size()) throw std::invalid_argument(item);
+    }
+    if (std::getline(in, item, ',')) throw std::invalid_argument("too many");
+  } catch (const std::exception&) {
+    throw Error(ErrorCode::kInvalidInput, "--pin '" + spec + "': expected VERTEX:x,y,z");
+  }
+  return pin;
+}
+
+// The frames file: {"colliders": ["sphere:...", ...],
+//                   "frames": [{"weights": [...], "colliders": [{"translation": [x,y,z],
+//                               "rotation": [w,x,y,z]}, ...], "pins": [{"vertex": i, "position": [x,y,z]}]}]}
+struct Scene {
+  std::vector<std::string> colliders;
+  std::vector<Frame> frames;
+};
+
+Scene LoadScene(const std::string& path) {
+  std::ifstream in(path);
+  if (!in) throw Error(ErrorCode::kNotFound, "frames file not found: " + path);
+  nlohmann::json doc;
+  try {
+    doc = nlohmann::json::parse(in);
+  } catch (const nlohmann::json::exception& e) {
+    throw Error(ErrorCode::kInvalidInput, path + ": not valid JSON: " + e.what());
+  }
+  Scene scene;
+  auto vec3 = [&](const nlohmann::json& j, const std::string& where) {
+    if (!j.is_array() || j.size() != 3) throw Error(ErrorCode::kInvalidInput, path + ": " + where + " must be [x, y, z]");
+    return Eigen::Vector3d(j[0].get<double>(), j[1].get<double>(), j[2].get<double>());
+  };
+  try {
+    if (doc.contains("colliders")) scene.colliders = doc["colliders"].get<std::vector<std::string>>();
+    if (!doc.contains("frames") || !doc["frames"].is_array() || doc["frames"].empty()) {
+      throw Error(ErrorCode::kInvalidInput, path + ": needs a non-empty \"frames\" array");
+    }
+    for (size_t i = 0; i < doc["frames"].size(); ++i) {
+      const auto& f = doc["frames"][i];
+      const std::string where = fmt::format("frames[{}]", i);
+      Frame frame;
+      if (!f.contains("weights")) throw Error(ErrorCode::kInvalidInput, path + ": " + where + " has no \"weights\"");
+      frame.weights = f["weights"].get<std::vector<double>>();
+      if (f.contains("colliders")) {
+        for (size_t c = 0; c < f["colliders"].size(); ++c) {
+          const auto& m = f["colliders"][c];
+          RigidTransform motion;
+          const std::string cw = fmt::format("{}.colliders[{}]", where, c);
+          if (m.contains("translation")) motion.translation = vec3(m["translation"], cw + ".translation");
+          if (m.contains("rotation")) {
+            const auto& q = m["rotation"];
+            if (!q.is_array() || q.size() != 4) {
+              throw Error(ErrorCode::kInvalidInput, path + ": " + cw + ".rotation must be a quaternion [w, x, y, z]");
+            }
+            motion.rotation = Eigen::Quaterniond(q[0].get<double>(), q[1].get<double>(), q[2].get<double>(),
+                                                 q[3].get<double>());
+            if (!(motion.rotation.norm() > 1e-12)) {
+              throw Error(ErrorCode::kInvalidInput, path + ": " + cw + ".rotation is zero");
+            }
+            motion.rotation.normalize();
+          }
+          frame.collider_transforms.push_back(motion);
+        }
+      }
+      if (f.contains("pins")) {
+        for (size_t k = 0; k < f["pins"].size(); ++k) {
+          const auto& p = f["pins"][k];
+          frame.pins.push_back({p.at("vertex").get<int>(), vec3(p.at("position"), fmt::format("{}.pins[{}].position", where, k))});
+        }
+      }
+      scene.frames.push_back(std::move(frame));
+    }
+  } catch (const nlohmann::json::exception& e) {
+    throw Error(ErrorCode::kInvalidInput, path + ": " + e.what());
+  }
+  return scene;
+}
 
 nlohmann::json RigJson(const RigSummary& s) {
   nlohmann::json springs;
@@ -77,6 +174,9 @@ nlohmann::json FrameJson(const Rig& rig, const SolveSummary& s, int frame, const
           {"residual", s.residual},
           {"energy", s.energy},
           {"fixed_vertices", s.fixed_vertices},
+          {"pins", s.pins},
+          {"contacts", s.contacts},
+          {"contact_rounds", s.contact_rounds},
           {"inverted_tetrahedra", s.inverted_tetrahedra},
           {"factorize_ms", s.factorize_ms},
           {"line_search_halvings", s.line_search_halvings},
@@ -114,24 +214,49 @@ int RunBlend(const BlendArgs& args) {
   Solver solver(rig, options);
 
   std::vector<Frame> frames;
+  std::vector<std::string> collider_specs = args.colliders;
+  Scene scene;
+  if (!args.frames_file.empty()) {
+    scene = LoadScene(args.frames_file);
+    collider_specs.insert(collider_specs.begin(), scene.colliders.begin(), scene.colliders.end());
+  }
+  std::vector<Collider> colliders;
+  for (const auto& spec : collider_specs) colliders.push_back(ParseCollider(spec));
+  solver.SetColliders(std::move(colliders));
+  std::vector<Pin> pins;
+  for (const auto& spec : args.pins) pins.push_back(ParsePin(spec));
+
   std::vector<double> weights = args.weights;
   if (weights.empty() && rig->num_targets() == 1) weights = {1.0};
-  if (weights.empty()) {
+  if (weights.empty() && args.frames_file.empty()) {
     throw Error(ErrorCode::kInvalidInput,
                 fmt::format("--weights is required with {} targets (one weight per target, in order)",
                             rig->num_targets()));
   }
-  ValidateWeights(*rig, weights);
+  if (args.frames_file.empty()) ValidateWeights(*rig, weights);
   namespace fs = std::filesystem;
-  if (args.sweep > 0) {
+  const bool many = args.sweep > 0 || !args.frames_file.empty();
+  if (!args.frames_file.empty()) {
+    frames = std::move(scene.frames);
+  } else if (args.sweep > 0) {
     frames = SweepFrames(weights, args.sweep);
+  } else {
+    frames.push_back(Frame{weights});
+  }
+  for (size_t i = 0; i < frames.size(); ++i) {
+    frames[i].pins.insert(frames[i].pins.end(), pins.begin(), pins.end());
+    try {
+      ValidateFrame(*rig, frames[i], collider_specs.size());
+    } catch (const Error& e) {
+      throw Error(e.code(), fmt::format("frames[{}]: {}", i, e.what()));
+    }
+  }
+  if (many) {
     std::error_code ec;
     fs::create_directories(args.out, ec);
     if (ec || !fs::is_directory(args.out)) {
       throw Error(ErrorCode::kInvalidInput, "cannot create the output directory " + args.out);
     }
-  } else {
-    frames.push_back(Frame{weights});
   }
 
   bool all_converged = true;
@@ -140,7 +265,7 @@ int RunBlend(const BlendArgs& args) {
     const SolveSummary summary = solver.Solve(frames[i], &positions);
     all_converged = all_converged && summary.converged();
     const std::string path =
-        args.sweep > 0 ? (fs::path(args.out) / fmt::format("frame_{:04d}.obj", i)).string() : args.out;
+        many ? (fs::path(args.out) / fmt::format("frame_{:04d}.obj", i)).string() : args.out;
     WriteObj(path, positions, rig->rest().faces);
     std::cout << FrameJson(*rig, summary, static_cast<int>(i), frames[i].weights).dump() << std::endl;
   }
@@ -184,6 +309,12 @@ Runner AddBlendCommand(CLI::App& app) {
                   "true (true Hessian, projected when not positive definite) or projected");
   cmd->add_flag("--no-warm-start", args->no_warm_start, "start every frame from the linear blendshape");
   cmd->add_flag("-v,--verbose", args->verbose, "print the rig summary as JSON on stderr");
+  cmd->add_option("--collider", args->colliders,
+                  "an obstacle: sphere:cx,cy,cz,r | capsule:x1,y1,z1,x2,y2,z2,r | box:cx,cy,cz,hx,hy,hz | "
+                  "plane:px,py,pz,nx,ny,nz (solid behind the normal) | mesh:PATH (closed); repeatable");
+  cmd->add_option("--pin", args->pins, "VERTEX:x,y,z holds a mesh vertex at a position in every frame; repeatable");
+  cmd->add_option("--frames", args->frames_file,
+                  "a JSON scene: weights, collider motions and pins per frame (see README); writes OUT/frame_*.obj");
   return [args] { return RunBlend(*args); };
 }
 

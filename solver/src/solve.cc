@@ -53,6 +53,12 @@ void SolveOptions::Validate() const {
   if (!(max_step_fraction > 0.0 && max_step_fraction <= 1000.0)) {
     fail(fmt::format("solve option max_step_fraction = {} is outside (0, 1000]", max_step_fraction));
   }
+  if (max_contact_rounds < 1 || max_contact_rounds > 1000) {
+    fail(fmt::format("solve option max_contact_rounds = {} is outside [1, 1000]", max_contact_rounds));
+  }
+  if (!(contact_offset >= 0.0 && contact_offset <= 0.01)) {
+    fail(fmt::format("solve option contact_offset = {} is outside [0, 0.01]", contact_offset));
+  }
   if (max_line_search_steps < 1 || max_line_search_steps > 60) {
     fail(fmt::format("solve option max_line_search_steps = {} is outside [1, 60]",
                      max_line_search_steps));
@@ -70,6 +76,33 @@ void ValidateWeights(const Rig& rig, const std::vector<double>& weights) {
       throw Error(ErrorCode::kInvalidInput,
                   fmt::format("weights[{}] (target '{}') is not finite ({})", t, rig.target(static_cast<int>(t)).name,
                               weights[t]));
+    }
+  }
+}
+
+void ValidateFrame(const Rig& rig, const Frame& frame, size_t colliders) {
+  ValidateWeights(rig, frame.weights);
+  const int n = rig.num_vertices();
+  for (size_t i = 0; i < frame.pins.size(); ++i) {
+    const Pin& pin = frame.pins[i];
+    if (pin.vertex < 0 || pin.vertex >= n) {
+      throw Error(ErrorCode::kInvalidInput, fmt::format("pins[{}].vertex = {} is not a vertex (the rig has {})",
+                                                        i, pin.vertex, n));
+    }
+    if (!pin.position.allFinite()) {
+      throw Error(ErrorCode::kInvalidInput, fmt::format("pins[{}] (vertex {}) has a non-finite position", i, pin.vertex));
+    }
+  }
+  if (!frame.collider_transforms.empty() && frame.collider_transforms.size() != colliders) {
+    throw Error(ErrorCode::kInvalidInput,
+                fmt::format("collider_transforms has {} entries but there are {} colliders",
+                            frame.collider_transforms.size(), colliders));
+  }
+  for (size_t i = 0; i < frame.collider_transforms.size(); ++i) {
+    const RigidTransform& m = frame.collider_transforms[i];
+    if (!m.translation.allFinite() || !m.rotation.coeffs().allFinite() || m.rotation.norm() < 1e-12) {
+      throw Error(ErrorCode::kInvalidInput,
+                  fmt::format("collider_transforms[{}] is not a finite rigid transform", i));
     }
   }
 }
@@ -146,6 +179,7 @@ class Solver::Impl {
     spring_force_.resize(static_cast<size_t>(3) * m);
     stiffness_.resize(m);
     force_.resize(3 * n);
+    reaction_.resize(3 * n);
     step_.resize(3 * n);
     trial_.resize(3 * n);
     fixed_dof_.assign(3 * n, 0);
@@ -163,6 +197,14 @@ class Solver::Impl {
     has_previous_ = true;
   }
   const Points& all_positions() const { return previous_; }
+  void SetColliders(std::vector<Collider> colliders) {
+    if (!colliders.empty() && rig_->boundary_mode() == BoundaryMode::kFloating) {
+      throw Error(ErrorCode::kInvalidInput,
+                  "colliders need a rig held by fixed vertices or an internal anchor; this rig has neither "
+                  "(give it fixed vertices, or an interior so it gets an anchor)");
+    }
+    colliders_ = std::move(colliders);
+  }
 
   std::shared_ptr<const Rig> rig_;
   SolveOptions options_;
@@ -181,6 +223,10 @@ class Solver::Impl {
   internal::FactorStatus Factorize();
   void SolveLinear(const Eigen::VectorXd& rhs, Eigen::VectorXd* x);
   void ChooseLinearSystem();
+  // Newton's method from x_ with the held coordinates fixed_dof_; adds to the summary's counters.
+  void Newton(SolveSummary& summary);
+  // One round of the contact active set; returns whether the set changed.
+  bool UpdateContacts(const std::vector<RigidTransform>& motions);
 
   std::unique_ptr<internal::SparseCholesky> cholesky_;
   // The system reduced to the free coordinates, analysed once per set of held coordinates.
@@ -205,6 +251,15 @@ class Solver::Impl {
   bool absolute_projection_ = false;
 
   Eigen::VectorXd x_, force_, step_, trial_;
+  std::vector<Collider> colliders_;
+  struct Contact {
+    int vertex;
+    Eigen::Vector3d normal;  // outward normal of the obstacle where the vertex is held
+  };
+  std::vector<Contact> contacts_;
+  std::vector<char> base_fixed_dof_;  // held coordinates of this frame before contacts
+  Eigen::VectorXd reaction_;          // spring force on every coordinate, held ones included
+
   Points previous_;
   std::optional<internal::AnchorMotion> previous_motion_;  // the anchor's motion in the previous frame
   bool has_previous_ = false;
@@ -289,6 +344,7 @@ double Solver::Impl::Assemble(const Eigen::VectorXd& x, double negative_scale, d
           }
           for (int c = 0; c < 3; ++c) {
             const bool pinned = fixed[3 * v + c];
+            reaction_[3 * v + c] = f[c];
             force_[3 * v + c] = pinned ? 0.0 : f[c];
             residual = std::max(residual, std::abs(force_[3 * v + c]));
           }
@@ -370,6 +426,39 @@ void Solver::Impl::SolveLinear(const Eigen::VectorXd& rhs, Eigen::VectorXd* x) {
   for (size_t i = 0; i < r.dofs.size(); ++i) (*x)[r.dofs[i]] = r.solution[static_cast<Eigen::Index>(i)];
 }
 
+bool Solver::Impl::UpdateContacts(const std::vector<RigidTransform>& motions) {
+  const Rig& rig = *rig_;
+  const double offset = options_.contact_offset * rig.summary().bounding_box_diagonal;
+  bool changed = false;
+  // Release: a held vertex the springs pull out of the obstacle no longer needs it.
+  Assemble(x_, 1.0);
+  std::vector<Contact> kept;
+  for (const Contact& c : contacts_) {
+    if (reaction_.segment<3>(3 * c.vertex).dot(c.normal) > 10.0 * options_.residual_tolerance) {
+      for (int k = 0; k < 3; ++k) fixed_dof_[3 * c.vertex + k] = base_fixed_dof_[3 * c.vertex + k];
+      changed = true;
+    } else {
+      kept.push_back(c);
+    }
+  }
+  contacts_ = std::move(kept);
+  // Catch: mesh vertices inside an obstacle move to its surface along the penetration normal and are held.
+  // Interior and cap vertices never become contacts (paper section 4).
+  for (int v = 0; v < rig.num_surface_vertices(); ++v) {
+    if (fixed_dof_[3 * v] && fixed_dof_[3 * v + 1] && fixed_dof_[3 * v + 2]) continue;
+    for (size_t i = 0; i < colliders_.size(); ++i) {
+      Eigen::Vector3d surface, normal;
+      if (!colliders_[i].Penetrates(x_.segment<3>(3 * v), motions[i], &surface, &normal)) continue;
+      x_.segment<3>(3 * v) = surface + offset * normal;
+      fixed_dof_[3 * v] = fixed_dof_[3 * v + 1] = fixed_dof_[3 * v + 2] = 1;
+      contacts_.push_back({v, normal});
+      changed = true;
+      break;
+    }
+  }
+  return changed;
+}
+
 double Solver::Impl::Energy(const Eigen::VectorXd& x) const {
   const Rig& rig = *rig_;
   const int* a = rig.spring_a().data();
@@ -408,104 +497,17 @@ bool SpansRigidly(const std::vector<Eigen::Vector3d>& points, double scale) {
 
 }  // namespace
 
-SolveSummary Solver::Impl::Solve(const Frame& frame, Points* positions) {
-  const auto start = std::chrono::steady_clock::now();
+void Solver::Impl::Newton(SolveSummary& summary) {
   const Rig& rig = *rig_;
-  SolveSummary summary;
   const int n = rig.num_vertices();
   const double diagonal = rig.summary().bounding_box_diagonal;
-  const Points linear = LinearBlendAll(rig, frame.weights);  // validates the weights
-  for (size_t i = 0; i < frame.pins.size(); ++i) {
-    const Pin& pin = frame.pins[i];
-    if (pin.vertex < 0 || pin.vertex >= n) {
-      throw Error(ErrorCode::kInvalidInput, fmt::format("pins[{}].vertex = {} is not a vertex (the rig has {})",
-                                                        i, pin.vertex, n));
-    }
-    if (!pin.position.allFinite()) {
-      throw Error(ErrorCode::kInvalidInput, fmt::format("pins[{}] (vertex {}) has a non-finite position", i, pin.vertex));
-    }
-  }
-  summary.pins = static_cast<int>(frame.pins.size());
-  if (options_.linear) {
-    *positions = linear.topRows(rig.num_surface_vertices());
-    summary.termination = Termination::kLinear;
-    summary.message = "linear blendshape";
-    summary.solve_ms = Elapsed(start);
-    return summary;
-  }
-  PrepareFrame(frame.weights);
-
-  // Boundary conditions of this frame: fixed vertices follow the linear blend, the anchor its blended
-  // rigid motion, pins their positions.
-  std::fill(fixed_dof_.begin(), fixed_dof_.end(), 0);
-  std::vector<std::pair<int, Eigen::Vector3d>> held;
-  for (int v : rig.fixed_vertices()) held.emplace_back(v, linear.row(v).transpose());
-  std::optional<internal::AnchorMotion> motion;
-  if (rig.boundary_mode() == BoundaryMode::kAnchored) {
-    motion = internal::BlendAnchorMotions(rig.anchor_motions(), frame.weights);
-    for (int v : rig.anchor_vertices()) {
-      held.emplace_back(v, motion->Apply(rig.shape(0).row(v).transpose(), rig.anchor_centroid()));
-    }
-  }
-  for (const Pin& pin : frame.pins) held.emplace_back(pin.vertex, pin.position);
-  std::vector<Eigen::Vector3d> held_points;
-  for (const auto& h : held) held_points.push_back(h.second);
-  BoundaryMode mode = rig.boundary_mode();
-  if (mode != BoundaryMode::kAnchored && mode != BoundaryMode::kFixedVertices) {
-    mode = SpansRigidly(held_points, diagonal) ? BoundaryMode::kFixedVertices
-           : held.empty()                      ? BoundaryMode::kFloating
-                                               : BoundaryMode::kPartiallyFixed;
-  }
-
-  // Start: the previous frame's equilibrium (warm start; carried along with the anchor's motion since
-  // then) or the linear blendshape; then the held vertices go to their positions.
-  x_.resize(3 * n);
-  if (options_.warm_start && has_previous_) {
-    for (int v = 0; v < n; ++v) x_.segment<3>(3 * v) = previous_.row(v).transpose();
-    if (motion && previous_motion_) {
-      // x -> M_now(M_before^-1(x)), both about the anchor's rest centroid.
-      const Eigen::Vector3d& c = rig.anchor_centroid();
-      const Eigen::Quaterniond relative = motion->rotation * previous_motion_->rotation.inverse();
-      for (int v = 0; v < n; ++v) {
-        const Eigen::Vector3d local = x_.segment<3>(3 * v) - c - previous_motion_->offset;
-        x_.segment<3>(3 * v) = relative * local + c + motion->offset;
-      }
-    }
-  } else {
-    for (int v = 0; v < n; ++v) x_.segment<3>(3 * v) = linear.row(v).transpose();
-  }
-  for (const auto& [v, p] : held) {
-    x_.segment<3>(3 * v) = p;
-    fixed_dof_[3 * v] = fixed_dof_[3 * v + 1] = fixed_dof_[3 * v + 2] = 1;
-  }
-  summary.fixed_vertices = static_cast<int>(std::count(fixed_dof_.begin(), fixed_dof_.end(), 1) / 3);
-  diagonal_shift_ = 0.0;
-  if (mode == BoundaryMode::kFloating) {
-    // 3-2-1 gauge: move the start rigidly so gauge vertex 0 is at the origin, 1 on the x axis and 2 in
-    // the xy plane, then hold exactly those six coordinates. Any configuration can be moved so, hence the
-    // gauge removes the rigid motions without adding a force.
-    const auto& g = rig.gauge_vertices();
-    if (!internal::ToCanonicalFrame(g, &x_)) {
-      summary.termination = Termination::kNumericalFailure;
-      summary.message = "the gauge vertices became collinear in the start configuration";
-      summary.solve_ms = Elapsed(start);
-      return summary;
-    }
-    fixed_dof_[3 * g[0]] = fixed_dof_[3 * g[0] + 1] = fixed_dof_[3 * g[0] + 2] = 1;
-    fixed_dof_[3 * g[1] + 1] = fixed_dof_[3 * g[1] + 2] = 1;
-    fixed_dof_[3 * g[2] + 2] = 1;
-  } else if (mode == BoundaryMode::kPartiallyFixed) {
-    diagonal_shift_ = 1e-8 / rig.summary().mean_rest_length;
-  }
-
-
   ChooseLinearSystem();
   const bool try_true = options_.hessian == HessianMode::kTrueWithProjectedFallback;
   absolute_projection_ = options_.hessian == HessianMode::kAbsolute;
   int tiny_steps = 0;
   double last_step = 0.0;  // length of the last Newton step (largest coordinate change)
   double residual = Assemble(x_, 1.0);
-  summary.initial_residual = residual;
+  if (summary.newton_iterations == 0) summary.initial_residual = residual;
   double energy = Energy(x_);
   summary.termination = Termination::kMaxIterations;
   for (int iteration = 0;; ++iteration) {
@@ -626,6 +628,110 @@ SolveSummary Solver::Impl::Solve(const Frame& frame, Points* positions) {
   }
   summary.residual = residual;
   summary.energy = energy;
+}
+
+SolveSummary Solver::Impl::Solve(const Frame& frame, Points* positions) {
+  const auto start = std::chrono::steady_clock::now();
+  const Rig& rig = *rig_;
+  SolveSummary summary;
+  const int n = rig.num_vertices();
+  const double diagonal = rig.summary().bounding_box_diagonal;
+  const Points linear = LinearBlendAll(rig, frame.weights);  // validates the weights
+  ValidateFrame(rig, frame, colliders_.size());
+  summary.pins = static_cast<int>(frame.pins.size());
+  if (options_.linear) {
+    *positions = linear.topRows(rig.num_surface_vertices());
+    summary.termination = Termination::kLinear;
+    summary.message = "linear blendshape";
+    summary.solve_ms = Elapsed(start);
+    return summary;
+  }
+  PrepareFrame(frame.weights);
+
+  // Boundary conditions of this frame: fixed vertices follow the linear blend, the anchor its blended
+  // rigid motion, pins their positions.
+  std::fill(fixed_dof_.begin(), fixed_dof_.end(), 0);
+  std::vector<std::pair<int, Eigen::Vector3d>> held;
+  for (int v : rig.fixed_vertices()) held.emplace_back(v, linear.row(v).transpose());
+  std::optional<internal::AnchorMotion> motion;
+  if (rig.boundary_mode() == BoundaryMode::kAnchored) {
+    motion = internal::BlendAnchorMotions(rig.anchor_motions(), frame.weights);
+    for (int v : rig.anchor_vertices()) {
+      held.emplace_back(v, motion->Apply(rig.shape(0).row(v).transpose(), rig.anchor_centroid()));
+    }
+  }
+  for (const Pin& pin : frame.pins) held.emplace_back(pin.vertex, pin.position);
+  std::vector<Eigen::Vector3d> held_points;
+  for (const auto& h : held) held_points.push_back(h.second);
+  BoundaryMode mode = rig.boundary_mode();
+  if (mode != BoundaryMode::kAnchored && mode != BoundaryMode::kFixedVertices) {
+    mode = SpansRigidly(held_points, diagonal) ? BoundaryMode::kFixedVertices
+           : held.empty()                      ? BoundaryMode::kFloating
+                                               : BoundaryMode::kPartiallyFixed;
+  }
+
+  // Start: the previous frame's equilibrium (warm start; carried along with the anchor's motion since
+  // then) or the linear blendshape; then the held vertices go to their positions.
+  x_.resize(3 * n);
+  if (options_.warm_start && has_previous_) {
+    for (int v = 0; v < n; ++v) x_.segment<3>(3 * v) = previous_.row(v).transpose();
+    if (motion && previous_motion_) {
+      // x -> M_now(M_before^-1(x)), both about the anchor's rest centroid.
+      const Eigen::Vector3d& c = rig.anchor_centroid();
+      const Eigen::Quaterniond relative = motion->rotation * previous_motion_->rotation.inverse();
+      for (int v = 0; v < n; ++v) {
+        const Eigen::Vector3d local = x_.segment<3>(3 * v) - c - previous_motion_->offset;
+        x_.segment<3>(3 * v) = relative * local + c + motion->offset;
+      }
+    }
+  } else {
+    for (int v = 0; v < n; ++v) x_.segment<3>(3 * v) = linear.row(v).transpose();
+  }
+  for (const auto& [v, p] : held) {
+    x_.segment<3>(3 * v) = p;
+    fixed_dof_[3 * v] = fixed_dof_[3 * v + 1] = fixed_dof_[3 * v + 2] = 1;
+  }
+  summary.fixed_vertices = static_cast<int>(std::count(fixed_dof_.begin(), fixed_dof_.end(), 1) / 3);
+  diagonal_shift_ = 0.0;
+  if (mode == BoundaryMode::kFloating) {
+    // 3-2-1 gauge: move the start rigidly so gauge vertex 0 is at the origin, 1 on the x axis and 2 in
+    // the xy plane, then hold exactly those six coordinates. Any configuration can be moved so, hence the
+    // gauge removes the rigid motions without adding a force.
+    const auto& g = rig.gauge_vertices();
+    if (!internal::ToCanonicalFrame(g, &x_)) {
+      summary.termination = Termination::kNumericalFailure;
+      summary.message = "the gauge vertices became collinear in the start configuration";
+      summary.solve_ms = Elapsed(start);
+      return summary;
+    }
+    fixed_dof_[3 * g[0]] = fixed_dof_[3 * g[0] + 1] = fixed_dof_[3 * g[0] + 2] = 1;
+    fixed_dof_[3 * g[1] + 1] = fixed_dof_[3 * g[1] + 2] = 1;
+    fixed_dof_[3 * g[2] + 2] = 1;
+  } else if (mode == BoundaryMode::kPartiallyFixed) {
+    diagonal_shift_ = 1e-8 / rig.summary().mean_rest_length;
+  }
+
+
+  base_fixed_dof_ = fixed_dof_;
+  contacts_.clear();
+  Newton(summary);
+  if (!colliders_.empty() && summary.termination != Termination::kNumericalFailure) {
+    // Paper section 4: hold the vertices that went inside an obstacle on its surface and solve again, and
+    // let go of held ones the springs pull away from it, until nothing changes.
+    std::vector<RigidTransform> motions(colliders_.size());
+    if (!frame.collider_transforms.empty()) motions = frame.collider_transforms;
+    while (UpdateContacts(motions)) {
+      if (summary.contact_rounds == options_.max_contact_rounds) {
+        summary.termination = Termination::kMaxIterations;
+        summary.message = fmt::format("contacts still changing after {} rounds", options_.max_contact_rounds);
+        break;
+      }
+      ++summary.contact_rounds;
+      Newton(summary);
+      if (summary.termination == Termination::kNumericalFailure) break;
+    }
+    summary.contacts = static_cast<int>(contacts_.size());
+  }
 
   summary.inverted_tetrahedra = internal::CountInvertedTetrahedra(rig.tetrahedra(), x_);
   Points solved(n, 3);
@@ -657,6 +763,7 @@ SolveSummary Solver::Solve(const Frame& frame, Points* positions) {
 }
 void Solver::Reset() { impl_->Reset(); }
 void Solver::SetWarmStart(const Points& all_vertices) { impl_->SetWarmStart(all_vertices); }
+void Solver::SetColliders(std::vector<Collider> colliders) { impl_->SetColliders(std::move(colliders)); }
 const Points& Solver::all_positions() const { return impl_->all_positions(); }
 const Rig& Solver::rig() const { return *impl_->rig_; }
 const SolveOptions& Solver::options() const { return impl_->options_; }

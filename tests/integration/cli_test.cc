@@ -100,6 +100,61 @@ TEST(CliBlend, LinearFlagWritesTheLinearBlendshape) {
             1e-7 * BoundingBoxDiagonal(expected));
 }
 
+TEST(CliBlend, ColliderAndPinKeepTheSweepOutOfTheBallAndOnThePin) {
+  TempDir dir;
+  const CliRun run = RunCli("blend --rest " + kRest + " --target " + kBend +
+                                " --sweep 6 --collider sphere:-1.7,0.75,0.75,0.35 --pin 0:2,0.475529,-0.154509 --out " +
+                                dir.File("scene"),
+                            dir);
+  ASSERT_EQ(run.exit_code, 0) << run.stderr_text;
+  ASSERT_EQ(run.lines.size(), 6u);
+  int contacts = 0;
+  for (const auto& j : run.lines) {
+    EXPECT_EQ(j["pins"], 1);
+    contacts += j["contacts"].get<int>();
+  }
+  EXPECT_GT(contacts, 0);
+  for (int i = 0; i < 6; ++i) {
+    const TriangleMesh frame = LoadMesh(dir.File("scene/frame_000" + std::to_string(i) + ".obj"));
+    for (Eigen::Index v = 0; v < frame.vertices.rows(); ++v) {
+      EXPECT_GE((frame.vertices.row(v) - Eigen::RowVector3d(-1.7, 0.75, 0.75)).norm(), 0.35 - 1e-5);
+    }
+  }
+}
+
+TEST(CliBlend, FramesFileAnimatesWeightsObstaclesAndPins) {
+  TempDir dir;
+  const std::string scene = dir.Write("scene.json", R"({
+    "colliders": ["sphere:-1.7,0.75,5.75,0.35"],
+    "frames": [
+      {"weights": [0.5], "colliders": [{"translation": [0, 0, 0]}]},
+      {"weights": [0.8], "colliders": [{"translation": [0, 0, -5]}]},
+      {"weights": [0.8], "colliders": [{"translation": [0, 0, 0], "rotation": [1, 0, 0, 0]}],
+       "pins": [{"vertex": 5, "position": [2, 0, 0]}]}
+    ]})");
+  const CliRun run = RunCli("blend --rest " + kRest + " --target " + kBend + " --frames " + scene + " --out " +
+                                dir.File("out"),
+                            dir);
+  ASSERT_EQ(run.exit_code, 0) << run.stderr_text;
+  ASSERT_EQ(run.lines.size(), 3u);
+  EXPECT_EQ(run.lines[0]["contacts"], 0);   // the ball is far away
+  EXPECT_GT(run.lines[1]["contacts"].get<int>(), 0);  // moved into the bend's path
+  EXPECT_EQ(run.lines[2]["contacts"], 0);   // and away again: contacts release
+  EXPECT_EQ(run.lines[2]["pins"], 1);
+  EXPECT_TRUE(std::filesystem::exists(dir.File("out/frame_0002.obj")));
+}
+
+TEST(CliBlend, ABadFrameAnywhereInTheFileIsRefusedBeforeAnythingIsWritten) {
+  TempDir dir;
+  const std::string scene = dir.Write("scene.json", R"({"frames": [{"weights": [0.5]}, {"weights": [0.5, 0.2]}]})");
+  const CliRun run = RunCli("blend --rest " + kRest + " --target " + kBend + " --frames " + scene + " --out " +
+                                dir.File("out"),
+                            dir);
+  EXPECT_EQ(run.exit_code, 2);
+  EXPECT_THAT(run.stderr_text, HasSubstr("frames[1]: weights has 2 entries"));
+  EXPECT_FALSE(std::filesystem::exists(dir.File("out/frame_0000.obj")));
+}
+
 struct BadCall {
   const char* name;
   std::string arguments;
@@ -133,7 +188,14 @@ INSTANTIATE_TEST_SUITE_P(
                 {"fixed_vertices[1] = 5000"}},
         BadCall{"UnknownSolver", "blend --rest " + kRest + " --target " + kBend + " --solver magic",
                 {"unknown linear solver 'magic'"}},
-        BadCall{"MissingTarget", "blend --rest " + kRest, {"--target"}}),
+        BadCall{"MissingTarget", "blend --rest " + kRest, {"--target"}},
+        BadCall{"BadCollider", "blend --rest " + kRest + " --target " + kBend + " --collider sphere:1,2",
+                {"sphere takes 4 numbers"}},
+        BadCall{"BadPin", "blend --rest " + kRest + " --target " + kBend + " --pin 3:1,2", {"--pin '3:1,2'"}},
+        BadCall{"PinOutOfRange", "blend --rest " + kRest + " --target " + kBend + " --pin 99999:1,2,3",
+                {"pins[0].vertex = 99999"}},
+        BadCall{"MissingFramesFile", "blend --rest " + kRest + " --target " + kBend + " --frames /nope.json",
+                {"frames file not found: /nope.json"}}),
     [](const ::testing::TestParamInfo<BadCall>& param) { return std::string(param.param.name); });
 
 }  // namespace

@@ -8,6 +8,7 @@
 #include <string>
 #include <vector>
 
+#include "springblend/collider.h"
 #include "springblend/mesh.h"
 #include "springblend/rig.h"
 
@@ -25,6 +26,8 @@ struct Frame {
   std::vector<double> weights;
   // Vertices dragged to a position for this frame (paper Fig. 5): boundary conditions like fixed vertices.
   std::vector<Pin> pins;
+  // The colliders' motion in this frame, one per collider of the Solver (empty: none moves).
+  std::vector<RigidTransform> collider_transforms;
 };
 
 enum class HessianMode {
@@ -52,6 +55,10 @@ struct SolveOptions {
   // Start each frame from the previous frame's solution (the paper's protocol). When false, or for the
   // first frame, the solve starts from the linear blendshape.
   bool warm_start = true;
+  // Contact rounds per frame (solve, catch penetrating vertices, solve again) before giving up. [1, 1000]
+  int max_contact_rounds = 30;
+  // Contact vertices are held this fraction of the diagonal outside the obstacle's surface. [0, 0.01]
+  double contact_offset = 1e-6;
   // The solution of a frame is the equilibrium; with `linear` the solver returns the plain linear
   // blendshape instead (for comparison) and does no Newton iteration.
   bool linear = false;
@@ -82,6 +89,8 @@ struct SolveSummary {
   double energy = 0.0;    // final spring energy
   int fixed_vertices = 0;      // boundary conditions in this frame: fixed, anchor and pinned vertices
   int pins = 0;
+  int contacts = 0;        // mesh vertices held on an obstacle's surface at the end of the frame
+  int contact_rounds = 0;  // extra solves the contacts took
   int inverted_tetrahedra = 0;  // tetrahedra turned inside out in the solution (paper section 5's limit)
   double solve_ms = 0.0;
   double factorize_ms = 0.0;
@@ -93,6 +102,8 @@ struct SolveSummary {
 
 // Checks a weight vector against the rig: right length, finite entries. Throws Error naming the entry.
 void ValidateWeights(const Rig& rig, const std::vector<double>& weights);
+// Checks a whole frame (weights, pins, one transform per collider or none) before anything is solved.
+void ValidateFrame(const Rig& rig, const Frame& frame, size_t colliders);
 
 // The linear blendshape: rest + sum_t w_t (target_t - rest) of the mesh vertices, #surface vertices by 3.
 Points LinearBlend(const Rig& rig, const std::vector<double>& weights);
@@ -117,6 +128,8 @@ class Solver {
   void Reset();
   // Start the next frame from these positions of every simulated vertex (#rig vertices by 3).
   void SetWarmStart(const Points& all_vertices);
+  // The obstacles of the following frames (paper section 4); each frame may move them.
+  void SetColliders(std::vector<Collider> colliders);
   // The last solution including cap and interior vertices (#rig vertices by 3); empty before a solve.
   const Points& all_positions() const;
 
