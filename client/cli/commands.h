@@ -4,6 +4,9 @@
 
 #include <CLI/CLI.hpp>
 #include <functional>
+#include <string>
+#include <utility>
+#include <vector>
 
 namespace springblend::cli {
 
@@ -12,9 +15,12 @@ inline constexpr int kExitOk = 0;
 inline constexpr int kExitNotConverged = 1;  // ran, but some frame did not converge
 inline constexpr int kExitBadInput = 2;      // bad arguments, files or weights (message on stderr)
 inline constexpr int kExitInternal = 3;
+inline constexpr int kExitUnavailable = 4;  // the server is unreachable, busy or failing
 
 using Runner = std::function<int()>;
 
 Runner AddBlendCommand(CLI::App& app);
+// upload, solve, list, delete, health: name and runner of each.
+std::vector<std::pair<std::string, Runner>> AddServiceCommands(CLI::App& app);
 
 }  // namespace springblend::cli

@@ -17,6 +17,7 @@ int main(int argc, char** argv) {
   int threads = 0;
   app.add_option("--threads", threads, "worker threads for assembly (0: all cores)")->check(CLI::Range(0, 1024));
   cli::Runner blend = cli::AddBlendCommand(app);
+  const auto remote = cli::AddServiceCommands(app);
   try {
     app.parse(argc, argv);
   } catch (const CLI::ParseError& e) {
@@ -30,6 +31,9 @@ int main(int argc, char** argv) {
   }
   try {
     if (app.got_subcommand("blend")) return blend();
+    for (const auto& [name, run] : remote) {
+      if (app.got_subcommand(name)) return run();
+    }
     return cli::kExitBadInput;
   } catch (const Error& e) {
     std::cerr << "springblend: error: " << e.what() << "\n";

@@ -10,7 +10,9 @@
 #include <algorithm>
 #include <cmath>
 #include <filesystem>
+#include <fstream>
 #include <mutex>
+#include <sstream>
 
 #include "springblend/error.h"
 
@@ -76,28 +78,20 @@ std::string Lowercase(std::string s) {
 
 }  // namespace
 
-TriangleMesh LoadMesh(const std::string& path) {
+namespace {
+TriangleMesh ReadMesh(std::istream& in, const std::string& format, const std::string& source) {
   QuietOpenMesh();
-  namespace fs = std::filesystem;
-  std::error_code ec;
-  if (!fs::exists(path, ec)) throw Error(ErrorCode::kNotFound, "mesh file not found: " + path);
-  if (!fs::is_regular_file(path, ec)) throw Error(ErrorCode::kInvalidInput, path + ": not a regular file");
-  const std::string ext = Lowercase(fs::path(path).extension().string());
-  if (ext != ".obj" && ext != ".ply" && ext != ".off" && ext != ".stl") {
-    throw Error(ErrorCode::kInvalidInput,
-                path + ": unsupported mesh format '" + ext + "' (use .obj, .ply, .off or .stl)");
-  }
-
   PolyMesh scratch;
   RawImporter importer(scratch);
   OpenMesh::IO::Options options;
-  if (!OpenMesh::IO::IOManager().read(path, importer, options)) {
-    throw Error(ErrorCode::kInvalidInput, path + ": OpenMesh could not parse the file as " + ext);
+  if (!OpenMesh::IO::IOManager().read(in, format, importer, options)) {
+    throw Error(ErrorCode::kInvalidInput, source + ": OpenMesh could not parse it as ." + format);
   }
+  const std::string& path = source;
 
   TriangleMesh mesh;
   mesh.source = path;
-  mesh.name = fs::path(path).stem().string();
+  mesh.name = source;
   mesh.vertices.resize(static_cast<Eigen::Index>(importer.points.size()), 3);
   for (size_t i = 0; i < importer.points.size(); ++i) {
     for (int c = 0; c < 3; ++c) mesh.vertices(static_cast<Eigen::Index>(i), c) = importer.points[i][c];
@@ -121,6 +115,35 @@ TriangleMesh LoadMesh(const std::string& path) {
   }
   ValidateMesh(mesh);
   return mesh;
+}
+
+}  // namespace
+
+TriangleMesh LoadMesh(const std::string& path) {
+  QuietOpenMesh();
+  namespace fs = std::filesystem;
+  std::error_code ec;
+  if (!fs::exists(path, ec)) throw Error(ErrorCode::kNotFound, "mesh file not found: " + path);
+  if (!fs::is_regular_file(path, ec)) throw Error(ErrorCode::kInvalidInput, path + ": not a regular file");
+  const std::string ext = Lowercase(fs::path(path).extension().string());
+  if (ext != ".obj" && ext != ".ply" && ext != ".off" && ext != ".stl") {
+    throw Error(ErrorCode::kInvalidInput,
+                path + ": unsupported mesh format '" + ext + "' (use .obj, .ply, .off or .stl)");
+  }
+
+  std::ifstream in(path, std::ios::binary);
+  TriangleMesh mesh = ReadMesh(in, ext.substr(1), path);
+  mesh.name = fs::path(path).stem().string();
+  return mesh;
+}
+
+TriangleMesh LoadMeshFromText(const std::string& text, const std::string& format, const std::string& source) {
+  const std::string f = Lowercase(format);
+  if (f != "obj" && f != "ply" && f != "off" && f != "stl") {
+    throw Error(ErrorCode::kInvalidInput, source + ": unsupported mesh format '" + format + "'");
+  }
+  std::istringstream in(text);
+  return ReadMesh(in, f, source);
 }
 
 void ValidateMesh(const TriangleMesh& mesh) {

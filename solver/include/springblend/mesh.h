@@ -22,6 +22,9 @@ struct TriangleMesh {
 // polygons are fan-triangulated. Throws Error naming the file and the offending element.
 TriangleMesh LoadMesh(const std::string& path);
 
+// Parse a mesh from memory; format is "obj", "ply", "off" or "stl"; source names it in messages.
+TriangleMesh LoadMeshFromText(const std::string& text, const std::string& format, const std::string& source);
+
 // Write an OBJ file (v and f lines only) with positions at full double precision.
 void WriteObj(const std::string& path, const Points& vertices, const Faces& faces);
 

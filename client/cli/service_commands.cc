@@ -1,0 +1,280 @@
+// The remote commands: upload, solve, list, delete and health against a springblend server.
+#include <fmt/format.h>
+#include <unistd.h>
+
+#include <chrono>
+#include <cstring>
+#include <filesystem>
+#include <fstream>
+#include <iostream>
+#include <memory>
+#include <nlohmann/json.hpp>
+#include <sstream>
+
+#include "commands.h"
+#include "scene.h"
+#include "springblend/client.h"
+#include "springblend/collider.h"
+#include "springblend/error.h"
+
+namespace springblend::cli {
+namespace {
+
+struct RemoteArgs {
+  std::string server = "127.0.0.1:50051";
+  // upload
+  std::string rest, name;
+  std::vector<std::string> targets;
+  std::vector<int> fixed;
+  bool no_interior = false, no_anchor = false;
+  // solve
+  std::string character, out, frames_file;
+  std::vector<double> weights;
+  int sweep = 0;
+  std::vector<std::string> colliders, pins;
+  double tolerance = 0.0;
+  int max_iterations = 0;
+  bool linear = false, normals = false;
+};
+
+v1::Vec3 ToVec3(double x, double y, double z) {
+  v1::Vec3 v;
+  v.set_x(x), v.set_y(y), v.set_z(z);
+  return v;
+}
+
+v1::Collider ToProto(const std::string& spec) {
+  const ColliderSpec c = ParseColliderSpec(spec);
+  const std::vector<double>& v = c.values;
+  v1::Collider out;
+  if (c.kind == "sphere") {
+    *out.mutable_sphere()->mutable_center() = ToVec3(v[0], v[1], v[2]);
+    out.mutable_sphere()->set_radius(v[3]);
+  } else if (c.kind == "capsule") {
+    *out.mutable_capsule()->mutable_a() = ToVec3(v[0], v[1], v[2]);
+    *out.mutable_capsule()->mutable_b() = ToVec3(v[3], v[4], v[5]);
+    out.mutable_capsule()->set_radius(v[6]);
+  } else if (c.kind == "box") {
+    *out.mutable_box()->mutable_center() = ToVec3(v[0], v[1], v[2]);
+    *out.mutable_box()->mutable_half_extents() = ToVec3(v[3], v[4], v[5]);
+  } else if (c.kind == "plane") {
+    *out.mutable_plane()->mutable_point() = ToVec3(v[0], v[1], v[2]);
+    *out.mutable_plane()->mutable_normal() = ToVec3(v[3], v[4], v[5]);
+  } else {
+    // Any format the loader reads travels as OBJ text.
+    const TriangleMesh mesh = LoadMesh(c.path);
+    std::ostringstream obj;
+    for (Eigen::Index i = 0; i < mesh.vertices.rows(); ++i) {
+      obj << fmt::format("v {} {} {}\n", mesh.vertices(i, 0), mesh.vertices(i, 1), mesh.vertices(i, 2));
+    }
+    for (Eigen::Index f = 0; f < mesh.faces.rows(); ++f) {
+      obj << fmt::format("f {} {} {}\n", mesh.faces(f, 0) + 1, mesh.faces(f, 1) + 1, mesh.faces(f, 2) + 1);
+    }
+    out.set_mesh_obj(obj.str());
+  }
+  return out;
+}
+
+v1::FrameRequest ToProto(const Frame& frame) {
+  v1::FrameRequest out;
+  for (double w : frame.weights) out.add_weights(w);
+  for (const auto& m : frame.collider_transforms) {
+    v1::Transform* t = out.add_collider_transforms();
+    *t->mutable_translation() = ToVec3(m.translation.x(), m.translation.y(), m.translation.z());
+    t->set_qw(m.rotation.w()), t->set_qx(m.rotation.x()), t->set_qy(m.rotation.y()), t->set_qz(m.rotation.z());
+  }
+  for (const auto& p : frame.pins) {
+    v1::Pin* pin = out.add_pins();
+    pin->set_vertex(static_cast<std::uint32_t>(p.vertex));
+    *pin->mutable_position() = ToVec3(p.position.x(), p.position.y(), p.position.z());
+  }
+  return out;
+}
+
+nlohmann::json CharacterJson(const v1::Character& c) {
+  const v1::RigSummary& s = c.summary();
+  return {{"id", c.id()},
+          {"name", c.name()},
+          {"cache_hit", c.cache_hit()},
+          {"targets", std::vector<std::string>(c.target_names().begin(), c.target_names().end())},
+          {"vertices", s.vertices()},
+          {"surface_vertices", s.surface_vertices()},
+          {"springs", s.springs()},
+          {"tetrahedra", s.tetrahedra()},
+          {"interior", s.interior()},
+          {"boundary_mode", s.boundary_mode()},
+          {"precompute_ms", s.precompute_ms()}};
+}
+
+int RunUpload(const RemoteArgs& args) {
+  Client client({args.server});
+  TriangleMesh rest = LoadMesh(args.rest);
+  std::vector<TriangleMesh> targets;
+  for (const auto& t : args.targets) targets.push_back(LoadMesh(t));
+  v1::BuildOptions options;
+  for (int v : args.fixed) options.add_fixed_vertices(static_cast<std::uint32_t>(v));
+  options.set_no_interior(args.no_interior);
+  options.set_no_anchor(args.no_anchor);
+  const v1::Character c = client.Upload(rest, targets, options, args.name.empty() ? rest.name : args.name);
+  std::cout << CharacterJson(c).dump() << std::endl;
+  return kExitOk;
+}
+
+int RunSolve(const RemoteArgs& args) {
+  Client client({args.server});
+  const v1::Character character = client.Get(args.character, /*with_faces=*/true);
+  Faces faces(character.faces().size() / 12, 3);
+  std::memcpy(faces.data(), character.faces().data(), character.faces().size());
+
+  v1::SolveRequest request;
+  request.set_character_id(args.character);
+  std::vector<Frame> frames;
+  std::vector<std::string> collider_specs;
+  if (!args.frames_file.empty()) {
+    Scene scene = LoadScene(args.frames_file);
+    frames = std::move(scene.frames);
+    collider_specs = scene.colliders;
+  } else {
+    std::vector<double> weights = args.weights;
+    if (weights.empty() && character.target_names_size() == 1) weights = {1.0};
+    if (weights.empty()) {
+      throw Error(ErrorCode::kInvalidInput, fmt::format("--weights is required: the character has {} targets",
+                                                        character.target_names_size()));
+    }
+    if (args.sweep > 0) {
+      frames = SweepFrames(weights, args.sweep);
+    } else {
+      frames.push_back(Frame{weights});
+    }
+  }
+  collider_specs.insert(collider_specs.end(), args.colliders.begin(), args.colliders.end());
+  for (const auto& spec : collider_specs) *request.add_colliders() = ToProto(spec);
+  for (const auto& spec : args.pins) {
+    const Pin pin = ParsePin(spec);
+    for (Frame& f : frames) f.pins.push_back(pin);
+  }
+  for (const Frame& f : frames) *request.add_frames() = ToProto(f);
+  request.mutable_options()->set_residual_tolerance(args.tolerance);
+  request.mutable_options()->set_max_iterations(static_cast<std::uint32_t>(args.max_iterations));
+  request.mutable_options()->set_linear(args.linear);
+  request.mutable_options()->set_with_normals(args.normals);
+
+  namespace fs = std::filesystem;
+  std::error_code ec;
+  fs::create_directories(args.out, ec);
+  if (ec || !fs::is_directory(args.out)) throw Error(ErrorCode::kInvalidInput, "cannot create the output directory " + args.out);
+  const bool progress = isatty(STDERR_FILENO) && isatty(STDOUT_FILENO);
+  const auto start = std::chrono::steady_clock::now();
+  bool all_converged = true;
+  const int total = request.frames_size();
+  client.Solve(request, [&](const v1::SolvedFrame& frame) {
+    WriteObj((fs::path(args.out) / fmt::format("frame_{:04d}.obj", frame.index())).string(),
+             Client::Decode(frame.positions()), faces);
+    const v1::FrameSummary& s = frame.summary();
+    all_converged = all_converged && s.converged();
+    const nlohmann::json line = {{"frame", frame.index()}, {"converged", s.converged()},
+                                 {"termination", s.termination()}, {"message", s.message()},
+                                 {"newton_iterations", s.newton_iterations()}, {"residual", s.residual()},
+                                 {"contacts", s.contacts()}, {"pins", s.pins()},
+                                 {"inverted_tetrahedra", s.inverted_tetrahedra()}, {"solve_ms", s.solve_ms()},
+                                 {"served_by", s.served_by()}};
+    if (progress) {
+      const double seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
+      const int done = static_cast<int>(frame.index()) + 1;
+      const int width = 30, filled = width * done / std::max(total, 1);
+      std::cerr << fmt::format("\r[{}{}] {}/{} frames, {:.1f} frames/s ", std::string(filled, '#'),
+                               std::string(width - filled, '.'), done, total, done / std::max(seconds, 1e-9))
+                << std::flush;
+    } else {
+      std::cout << line.dump() << std::endl;
+    }
+  });
+  if (progress) std::cerr << "\n";
+  return all_converged ? kExitOk : kExitNotConverged;
+}
+
+int RunList(const RemoteArgs& args) {
+  Client client({args.server});
+  for (const auto& c : client.List()) std::cout << CharacterJson(c).dump() << std::endl;
+  return kExitOk;
+}
+
+int RunDelete(const RemoteArgs& args) {
+  Client client({args.server});
+  client.Delete(args.character);
+  std::cout << nlohmann::json({{"deleted", args.character}}).dump() << std::endl;
+  return kExitOk;
+}
+
+int RunHealth(const RemoteArgs& args) {
+  Client client({args.server});
+  const bool serving = client.Healthy();
+  std::cout << nlohmann::json({{"server", args.server}, {"status", serving ? "SERVING" : "NOT_SERVING"}}).dump()
+            << std::endl;
+  return serving ? kExitOk : kExitUnavailable;
+}
+
+// gRPC failures become exit codes: the caller's mistakes 2, the server's state 4.
+Runner Guarded(std::function<int()> run) {
+  return [run = std::move(run)] {
+    try {
+      return run();
+    } catch (const ClientError& e) {
+      std::cerr << "springblend: server error " << e.code() << ": " << e.what() << "\n";
+      const auto code = static_cast<grpc::StatusCode>(e.code());
+      return code == grpc::StatusCode::INVALID_ARGUMENT || code == grpc::StatusCode::NOT_FOUND ? kExitBadInput
+                                                                                               : kExitUnavailable;
+    }
+  };
+}
+
+}  // namespace
+
+std::vector<std::pair<std::string, Runner>> AddServiceCommands(CLI::App& app) {
+  auto args = std::make_shared<RemoteArgs>();
+  std::vector<std::pair<std::string, Runner>> runners;
+  auto server_option = [&](CLI::App* cmd) {
+    cmd->add_option("--server", args->server, "server address (host:port)");
+  };
+
+  CLI::App* upload = app.add_subcommand("upload", "upload a character; prints its id and rig summary as JSON");
+  server_option(upload);
+  upload->add_option("--rest", args->rest, "rest shape")->required();
+  upload->add_option("--target", args->targets, "a target; repeat (order = weight order)")->required();
+  upload->add_option("--name", args->name, "a label (default: the rest file's name)");
+  upload->add_option("--fixed", args->fixed, "fixed vertices")->delimiter(',');
+  upload->add_flag("--no-interior", args->no_interior, "surface springs only");
+  upload->add_flag("--no-anchor", args->no_anchor, "no internal anchor");
+  runners.emplace_back("upload", Guarded([args] { return RunUpload(*args); }));
+
+  CLI::App* solve = app.add_subcommand("solve", "solve frames on the server; writes OUT/frame_0000.obj ... and JSON lines");
+  server_option(solve);
+  solve->add_option("--character", args->character, "character id from upload")->required();
+  solve->add_option("--weights", args->weights, "one weight per target (the sweep's end with --sweep)")->delimiter(',');
+  solve->add_option("--sweep", args->sweep, "N frames from the rest shape to the weights")->check(CLI::Range(1, 100000));
+  solve->add_option("--frames", args->frames_file, "a JSON scene file (as for blend)");
+  solve->add_option("--collider", args->colliders, "an obstacle (as for blend); repeatable");
+  solve->add_option("--pin", args->pins, "VERTEX:x,y,z in every frame; repeatable");
+  solve->add_option("--out", args->out, "output directory")->required();
+  solve->add_option("--tolerance", args->tolerance, "residual tolerance (server default 1e-9)");
+  solve->add_option("--max-iterations", args->max_iterations, "Newton iterations per frame");
+  solve->add_flag("--linear", args->linear, "the linear blendshape");
+  solve->add_flag("--normals", args->normals, "ask for normals too");
+  runners.emplace_back("solve", Guarded([args] { return RunSolve(*args); }));
+
+  CLI::App* list = app.add_subcommand("list", "list the server's characters as JSON lines");
+  server_option(list);
+  runners.emplace_back("list", Guarded([args] { return RunList(*args); }));
+
+  CLI::App* remove = app.add_subcommand("delete", "delete a character from the server and its cache directory");
+  server_option(remove);
+  remove->add_option("--character", args->character, "character id")->required();
+  runners.emplace_back("delete", Guarded([args] { return RunDelete(*args); }));
+
+  CLI::App* health = app.add_subcommand("health", "ask the server's health service; exit 0 when SERVING");
+  server_option(health);
+  runners.emplace_back("health", Guarded([args] { return RunHealth(*args); }));
+  return runners;
+}
+
+}  // namespace springblend::cli

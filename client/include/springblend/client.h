@@ -1,0 +1,62 @@
+// The C++ client of a springblend server: what a DCC plug-in written in C++ links. Every call throws
+// ClientError carrying the server's status code and message (which names the field at fault).
+#pragma once
+
+#include <chrono>
+#include <functional>
+#include <memory>
+#include <stdexcept>
+#include <string>
+#include <vector>
+
+#include "springblend/mesh.h"
+#include "springblend/v1/springblend.grpc.pb.h"
+
+namespace springblend {
+
+class ClientError : public std::runtime_error {
+ public:
+  ClientError(int code, const std::string& message)
+      : std::runtime_error(message), code_(code) {}
+  int code() const { return code_; }  // a grpc::StatusCode
+ private:
+  int code_;
+};
+
+struct ClientOptions {
+  std::string address = "127.0.0.1:50051";
+  std::chrono::milliseconds timeout{std::chrono::minutes(10)};  // per call
+  size_t piece_bytes = 1 << 20;  // upload piece size, well under gRPC's 4 MiB message limit
+};
+
+// The metadata header that names the character of a call, so a load balancer can route by it.
+inline constexpr char kCharacterHeader[] = "x-springblend-character";
+
+class Client {
+ public:
+  explicit Client(ClientOptions options);
+
+  // Uploads the rest mesh and targets (same vertex count and faces) in pieces.
+  v1::Character Upload(const TriangleMesh& rest, const std::vector<TriangleMesh>& targets,
+                       const v1::BuildOptions& options = {}, const std::string& name = "");
+  v1::Character Get(const std::string& id, bool with_faces = false);
+  std::vector<v1::Character> List();
+  void Delete(const std::string& id);
+  // True when the server's standard health service reports SERVING.
+  bool Healthy();
+  // Streams the frames; on_frame runs for each as it arrives. Returns the number of frames received.
+  int Solve(const v1::SolveRequest& request, const std::function<void(const v1::SolvedFrame&)>& on_frame);
+
+  // Decodes a SolvedFrame's float32 positions (or normals) into #V by 3 doubles.
+  static Points Decode(const std::string& packed);
+
+ private:
+  std::unique_ptr<grpc::ClientContext> Context(const std::string& character = "") const;
+
+  ClientOptions options_;
+  std::shared_ptr<grpc::Channel> channel_;
+  std::unique_ptr<v1::CharacterService::Stub> characters_;
+  std::unique_ptr<v1::SolveService::Stub> solves_;
+};
+
+}  // namespace springblend

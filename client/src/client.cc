@@ -1,0 +1,131 @@
+#include "springblend/client.h"
+
+#include <grpcpp/grpcpp.h>
+
+#include <cstring>
+
+#include "grpc/health/v1/health.grpc.pb.h"
+
+namespace springblend {
+namespace {
+
+void Check(const grpc::Status& status) {
+  if (!status.ok()) throw ClientError(status.error_code(), status.error_message());
+}
+
+}  // namespace
+
+Client::Client(ClientOptions options) : options_(std::move(options)) {
+  grpc::ChannelArguments arguments;
+  arguments.SetMaxReceiveMessageSize(256 << 20);
+  channel_ = grpc::CreateCustomChannel(options_.address, grpc::InsecureChannelCredentials(), arguments);
+  characters_ = v1::CharacterService::NewStub(channel_);
+  solves_ = v1::SolveService::NewStub(channel_);
+}
+
+std::unique_ptr<grpc::ClientContext> Client::Context(const std::string& character) const {
+  auto context = std::make_unique<grpc::ClientContext>();
+  context->set_deadline(std::chrono::system_clock::now() + options_.timeout);
+  if (!character.empty()) context->AddMetadata(kCharacterHeader, character);
+  return context;
+}
+
+v1::Character Client::Upload(const TriangleMesh& rest, const std::vector<TriangleMesh>& targets,
+                             const v1::BuildOptions& options, const std::string& name) {
+  auto context = Context();
+  v1::Character response;
+  auto writer = characters_->UploadCharacter(context.get(), &response);
+  v1::UploadChunk header;
+  v1::UploadHeader* h = header.mutable_header();
+  h->set_name(name);
+  h->set_vertex_count(static_cast<std::uint32_t>(rest.vertices.rows()));
+  h->set_face_count(static_cast<std::uint32_t>(rest.faces.rows()));
+  for (const auto& t : targets) h->add_target_names(t.name);
+  *h->mutable_options() = options;
+  bool ok = writer->Write(header);
+  auto send = [&](v1::MeshPiece::Kind kind, std::uint32_t shape, const char* data, size_t elements, size_t size) {
+    const size_t per_piece = std::max<size_t>(1, options_.piece_bytes / size);
+    for (size_t first = 0; ok && first < elements; first += per_piece) {
+      const size_t count = std::min(per_piece, elements - first);
+      v1::UploadChunk chunk;
+      v1::MeshPiece* piece = chunk.mutable_piece();
+      piece->set_kind(kind);
+      piece->set_shape(shape);
+      piece->set_offset(static_cast<std::uint32_t>(first));
+      piece->set_data(data + first * size, count * size);
+      ok = writer->Write(chunk);
+    }
+  };
+  send(v1::MeshPiece::FACES, 0, reinterpret_cast<const char*>(rest.faces.data()),
+       static_cast<size_t>(rest.faces.rows()), 12);
+  std::vector<const TriangleMesh*> shapes = {&rest};
+  for (const auto& t : targets) shapes.push_back(&t);
+  for (size_t s = 0; s < shapes.size(); ++s) {
+    if (shapes[s]->vertices.rows() != rest.vertices.rows()) {
+      throw ClientError(grpc::StatusCode::INVALID_ARGUMENT,
+                        shapes[s]->source + ": its vertex count differs from the rest mesh's");
+    }
+    send(v1::MeshPiece::POSITIONS, static_cast<std::uint32_t>(s),
+         reinterpret_cast<const char*>(shapes[s]->vertices.data()), static_cast<size_t>(rest.vertices.rows()), 24);
+  }
+  writer->WritesDone();
+  Check(writer->Finish());
+  return response;
+}
+
+v1::Character Client::Get(const std::string& id, bool with_faces) {
+  auto context = Context(id);
+  v1::GetCharacterRequest request;
+  request.set_id(id);
+  request.set_with_faces(with_faces);
+  v1::Character response;
+  Check(characters_->GetCharacter(context.get(), request, &response));
+  return response;
+}
+
+std::vector<v1::Character> Client::List() {
+  auto context = Context();
+  v1::ListCharactersResponse response;
+  Check(characters_->ListCharacters(context.get(), {}, &response));
+  return {response.characters().begin(), response.characters().end()};
+}
+
+void Client::Delete(const std::string& id) {
+  auto context = Context(id);
+  v1::DeleteCharacterRequest request;
+  request.set_id(id);
+  v1::DeleteCharacterResponse response;
+  Check(characters_->DeleteCharacter(context.get(), request, &response));
+}
+
+bool Client::Healthy() {
+  auto stub = grpc::health::v1::Health::NewStub(channel_);
+  grpc::ClientContext context;
+  context.set_deadline(std::chrono::system_clock::now() + std::chrono::seconds(5));
+  grpc::health::v1::HealthCheckRequest request;
+  grpc::health::v1::HealthCheckResponse response;
+  const grpc::Status status = stub->Check(&context, request, &response);
+  return status.ok() && response.status() == grpc::health::v1::HealthCheckResponse::SERVING;
+}
+
+int Client::Solve(const v1::SolveRequest& request, const std::function<void(const v1::SolvedFrame&)>& on_frame) {
+  auto context = Context(request.character_id());
+  auto reader = solves_->Solve(context.get(), request);
+  v1::SolvedFrame frame;
+  int received = 0;
+  while (reader->Read(&frame)) {
+    on_frame(frame);
+    ++received;
+  }
+  Check(reader->Finish());
+  return received;
+}
+
+Points Client::Decode(const std::string& packed) {
+  const size_t count = packed.size() / (3 * sizeof(float));
+  Eigen::Matrix<float, Eigen::Dynamic, 3, Eigen::RowMajor> values(static_cast<Eigen::Index>(count), 3);
+  std::memcpy(values.data(), packed.data(), count * 3 * sizeof(float));
+  return values.cast<double>();
+}
+
+}  // namespace springblend

@@ -1,0 +1,329 @@
+#include "character_store.h"
+
+#include <fcntl.h>
+#include <openssl/evp.h>
+#include <unistd.h>
+
+#include <cstring>
+#include <filesystem>
+#include <fmt/format.h>
+#include <fstream>
+#include <sstream>
+#include <thread>
+
+#include "springblend/error.h"
+
+namespace springblend::server {
+namespace {
+
+constexpr char kFileMagic[8] = {'S', 'B', 'C', 'H', 'A', 'R', '0', '1'};
+
+// Little-endian byte writer/reader for the canonical form (x86-64 and aarch64 are little-endian).
+class Writer {
+ public:
+  template <typename T>
+  void Put(const T& value) {
+    out_.append(reinterpret_cast<const char*>(&value), sizeof(T));
+  }
+  void PutString(const std::string& s) {
+    Put<std::uint32_t>(static_cast<std::uint32_t>(s.size()));
+    out_.append(s);
+  }
+  void PutBytes(const void* data, size_t n) { out_.append(static_cast<const char*>(data), n); }
+  std::string Take() { return std::move(out_); }
+
+ private:
+  std::string out_;
+};
+
+class Reader {
+ public:
+  explicit Reader(const std::string& in) : in_(in) {}
+  template <typename T>
+  T Get() {
+    T value;
+    Need(sizeof(T));
+    std::memcpy(&value, in_.data() + at_, sizeof(T));
+    at_ += sizeof(T);
+    return value;
+  }
+  std::string GetString() {
+    const auto n = Get<std::uint32_t>();
+    Need(n);
+    std::string s = in_.substr(at_, n);
+    at_ += n;
+    return s;
+  }
+  void GetBytes(void* out, size_t n) {
+    Need(n);
+    std::memcpy(out, in_.data() + at_, n);
+    at_ += n;
+  }
+  bool Done() const { return at_ == in_.size(); }
+
+ private:
+  void Need(size_t n) const {
+    if (n > in_.size() - at_) throw Error(ErrorCode::kInvalidInput, "character data is truncated");
+  }
+  const std::string& in_;
+  size_t at_ = 0;
+};
+
+std::string Sha256(const std::string& bytes) {
+  unsigned char digest[EVP_MAX_MD_SIZE];
+  unsigned int length = 0;
+  EVP_Digest(bytes.data(), bytes.size(), digest, &length, EVP_sha256(), nullptr);
+  return std::string(reinterpret_cast<const char*>(digest), length);
+}
+
+std::string Hex(const std::string& bytes) {
+  std::string out;
+  for (unsigned char c : bytes) out += fmt::format("{:02x}", c);
+  return out;
+}
+
+std::string SerializeWithName(const CharacterData& d, const std::string& name) {
+  Writer w;
+  w.PutString(name);
+  const RigOptions& o = d.options;
+  w.Put<std::uint32_t>(static_cast<std::uint32_t>(o.fixed_vertices.size()));
+  for (int v : o.fixed_vertices) w.Put<std::int32_t>(v);
+  w.Put<double>(o.static_tolerance);
+  w.Put<std::uint8_t>(o.interior ? 1 : 0);
+  w.Put<std::uint8_t>(o.anchor ? 1 : 0);
+  w.Put<double>(o.bending_stiffness);
+  w.Put<std::uint32_t>(static_cast<std::uint32_t>(d.target_names.size()));
+  for (const auto& t : d.target_names) w.PutString(t);
+  w.Put<std::uint32_t>(static_cast<std::uint32_t>(d.faces.rows()));
+  w.PutBytes(d.faces.data(), sizeof(int) * static_cast<size_t>(d.faces.size()));
+  const auto vertices = d.shapes.empty() ? 0 : d.shapes[0].rows();
+  w.Put<std::uint32_t>(static_cast<std::uint32_t>(vertices));
+  for (const auto& s : d.shapes) w.PutBytes(s.data(), sizeof(double) * static_cast<size_t>(s.size()));
+  return w.Take();
+}
+
+std::int64_t EstimateBytes(const Rig& rig) {
+  const std::int64_t n = rig.num_vertices(), m = rig.num_springs(), shapes = rig.num_targets() + 1;
+  return 24 * n * shapes * 2 + m * (9 + 8 * shapes) + rig.summary().hessian_nonzeros * 16 +
+         rig.summary().faces * 12LL * shapes;
+}
+
+}  // namespace
+
+std::string Serialize(const CharacterData& data) { return SerializeWithName(data, data.name); }
+
+std::string ContentId(const CharacterData& data) { return Hex(Sha256(SerializeWithName(data, ""))); }
+
+CharacterData Deserialize(const std::string& bytes) {
+  Reader r(bytes);
+  CharacterData d;
+  d.name = r.GetString();
+  const auto fixed = r.Get<std::uint32_t>();
+  if (fixed > bytes.size()) throw Error(ErrorCode::kInvalidInput, "character data: bad fixed vertex count");
+  for (std::uint32_t i = 0; i < fixed; ++i) d.options.fixed_vertices.push_back(r.Get<std::int32_t>());
+  d.options.static_tolerance = r.Get<double>();
+  d.options.interior = r.Get<std::uint8_t>() != 0;
+  d.options.anchor = r.Get<std::uint8_t>() != 0;
+  d.options.bending_stiffness = r.Get<double>();
+  const auto targets = r.Get<std::uint32_t>();
+  if (targets > bytes.size()) throw Error(ErrorCode::kInvalidInput, "character data: bad target count");
+  for (std::uint32_t t = 0; t < targets; ++t) d.target_names.push_back(r.GetString());
+  const auto faces = r.Get<std::uint32_t>();
+  if (static_cast<size_t>(faces) * 12 > bytes.size()) throw Error(ErrorCode::kInvalidInput, "character data: bad face count");
+  d.faces.resize(faces, 3);
+  r.GetBytes(d.faces.data(), sizeof(int) * 3 * static_cast<size_t>(faces));
+  const auto vertices = r.Get<std::uint32_t>();
+  if (static_cast<size_t>(vertices) * 24 * (targets + 1) > bytes.size()) {
+    throw Error(ErrorCode::kInvalidInput, "character data: bad vertex count");
+  }
+  for (std::uint32_t s = 0; s <= targets; ++s) {
+    Points p(vertices, 3);
+    r.GetBytes(p.data(), sizeof(double) * 3 * static_cast<size_t>(vertices));
+    d.shapes.push_back(std::move(p));
+  }
+  if (!r.Done()) throw Error(ErrorCode::kInvalidInput, "character data has trailing bytes");
+  return d;
+}
+
+CharacterStore::CharacterStore(StoreOptions options) : options_(std::move(options)) {
+  if (!options_.directory.empty()) {
+    std::error_code ec;
+    std::filesystem::create_directories(options_.directory, ec);
+    if (ec) throw Error(ErrorCode::kInvalidInput, "cannot create the cache directory " + options_.directory + ": " + ec.message());
+  }
+}
+
+bool CharacterStore::ValidId(const std::string& id) {
+  if (id.size() != 64) return false;
+  for (char c : id) {
+    if (!((c >= '0' && c <= '9') || (c >= 'a' && c <= 'f'))) return false;
+  }
+  return true;
+}
+
+std::string CharacterStore::PathOf(const std::string& id) const {
+  return (std::filesystem::path(options_.directory) / (id + ".sbchar")).string();
+}
+
+void CharacterStore::WriteFile(const std::string& id, const std::string& payload) const {
+  if (options_.directory.empty()) return;
+  // Atomic: a uniquely named temporary file, flushed to disk, then renamed over the final name. Readers see
+  // the whole file or none; a crash leaves at most a temporary file, which is never read.
+  const std::string path = PathOf(id);
+  const std::string temporary = fmt::format("{}.tmp.{}.{}", path, ::getpid(), std::hash<std::thread::id>{}(std::this_thread::get_id()));
+  std::string bytes(kFileMagic, sizeof(kFileMagic));
+  bytes += Sha256(payload);
+  bytes += payload;
+  const int fd = ::open(temporary.c_str(), O_WRONLY | O_CREAT | O_TRUNC | O_CLOEXEC, 0644);
+  if (fd < 0) return;  // the cache directory is an optimisation; serving goes on from memory
+  size_t written = 0;
+  while (written < bytes.size()) {
+    const ssize_t n = ::write(fd, bytes.data() + written, bytes.size() - written);
+    if (n <= 0) break;
+    written += static_cast<size_t>(n);
+  }
+  const bool ok = written == bytes.size() && ::fsync(fd) == 0;
+  ::close(fd);
+  if (!ok || std::rename(temporary.c_str(), path.c_str()) != 0) std::remove(temporary.c_str());
+}
+
+std::optional<std::string> CharacterStore::ReadFile(const std::string& id) {
+  if (options_.directory.empty()) return std::nullopt;
+  std::ifstream in(PathOf(id), std::ios::binary);
+  if (!in) return std::nullopt;
+  std::stringstream buffer;
+  buffer << in.rdbuf();
+  const std::string bytes = buffer.str();
+  const size_t header = sizeof(kFileMagic) + 32;
+  bool ok = bytes.size() > header && std::memcmp(bytes.data(), kFileMagic, sizeof(kFileMagic)) == 0;
+  std::string payload;
+  if (ok) {
+    payload = bytes.substr(header);
+    ok = Sha256(payload) == bytes.substr(sizeof(kFileMagic), 32);
+  }
+  if (ok) {
+    try {
+      ok = ContentId(Deserialize(payload)) == id;
+    } catch (const Error&) {
+      ok = false;
+    }
+  }
+  if (!ok) {
+    // Never serve a corrupt file: drop it; the next upload writes it anew.
+    std::lock_guard lock(mutex_);
+    ++stats_.corrupt_files;
+    std::remove(PathOf(id).c_str());
+    return std::nullopt;
+  }
+  return payload;
+}
+
+std::shared_ptr<const CharacterStore::Entry> CharacterStore::Build(const std::string& id, const CharacterData& data) {
+  TriangleMesh rest;
+  rest.name = "rest";
+  rest.source = data.name.empty() ? "rest mesh" : data.name + ": rest mesh";
+  rest.vertices = data.shapes[0];
+  rest.faces = data.faces;
+  std::vector<TriangleMesh> targets;
+  for (size_t t = 0; t < data.target_names.size(); ++t) {
+    TriangleMesh target;
+    target.name = data.target_names[t];
+    target.source = fmt::format("target '{}'", data.target_names[t]);
+    target.vertices = data.shapes[t + 1];
+    target.faces = data.faces;
+    targets.push_back(std::move(target));
+  }
+  auto entry = std::make_shared<Entry>();
+  entry->id = id;
+  entry->name = data.name;
+  entry->rig = Rig::Build(std::move(rest), std::move(targets), data.options);
+  entry->bytes = EstimateBytes(*entry->rig);
+  return entry;
+}
+
+void CharacterStore::Insert(std::shared_ptr<const Entry> entry) {
+  const std::string id = entry->id;
+  if (entries_.count(id) != 0) return;
+  lru_.push_front(id);
+  stats_.bytes += entry->bytes;
+  entries_[id] = Slot{std::move(entry), lru_.begin()};
+  // Evict the least recently used, but never the entry just inserted.
+  while (stats_.bytes > options_.memory_budget_bytes && lru_.size() > 1) {
+    const std::string victim = lru_.back();
+    lru_.pop_back();
+    stats_.bytes -= entries_[victim].entry->bytes;
+    entries_.erase(victim);
+    ++stats_.evictions;
+  }
+  stats_.characters = static_cast<std::int64_t>(entries_.size());
+}
+
+std::pair<std::shared_ptr<const CharacterStore::Entry>, bool> CharacterStore::Put(const CharacterData& data) {
+  const std::string id = ContentId(data);
+  if (auto known = Get(id)) return {known, true};
+  auto entry = Build(id, data);  // throws Error for bad meshes; nothing is stored then
+  WriteFile(id, Serialize(data));
+  std::lock_guard lock(mutex_);
+  Insert(entry);
+  return {entry, false};
+}
+
+std::shared_ptr<const CharacterStore::Entry> CharacterStore::Get(const std::string& id) {
+  if (!ValidId(id)) return nullptr;
+  {
+    std::lock_guard lock(mutex_);
+    auto it = entries_.find(id);
+    if (it != entries_.end()) {
+      lru_.splice(lru_.begin(), lru_, it->second.position);
+      ++stats_.hits;
+      return it->second.entry;
+    }
+    ++stats_.misses;
+  }
+  const auto payload = ReadFile(id);
+  if (!payload) return nullptr;
+  auto entry = Build(id, Deserialize(*payload));
+  std::lock_guard lock(mutex_);
+  ++stats_.rebuilds_from_disk;
+  Insert(entry);
+  return entries_.count(id) ? entries_[id].entry : entry;
+}
+
+std::vector<std::shared_ptr<const CharacterStore::Entry>> CharacterStore::List() {
+  if (!options_.directory.empty()) {
+    std::error_code ec;
+    for (const auto& file : std::filesystem::directory_iterator(options_.directory, ec)) {
+      const std::string stem = file.path().stem().string();
+      if (file.path().extension() == ".sbchar" && ValidId(stem)) Get(stem);
+    }
+  }
+  std::lock_guard lock(mutex_);
+  std::vector<std::shared_ptr<const Entry>> out;
+  for (const auto& id : lru_) out.push_back(entries_[id].entry);
+  return out;
+}
+
+bool CharacterStore::Delete(const std::string& id) {
+  if (!ValidId(id)) return false;
+  bool found = false;
+  {
+    std::lock_guard lock(mutex_);
+    auto it = entries_.find(id);
+    if (it != entries_.end()) {
+      stats_.bytes -= it->second.entry->bytes;
+      lru_.erase(it->second.position);
+      entries_.erase(it);
+      stats_.characters = static_cast<std::int64_t>(entries_.size());
+      found = true;
+    }
+  }
+  if (!options_.directory.empty()) found = std::filesystem::remove(PathOf(id)) || found;
+  return found;
+}
+
+StoreStats CharacterStore::stats() const {
+  std::lock_guard lock(mutex_);
+  return stats_;
+}
+
+}  // namespace springblend::server

@@ -1,0 +1,82 @@
+// The character cache: built rigs in memory (least recently used out first, within a byte budget) over a
+// directory of content-addressed upload files, so a restart, or another replica sharing the directory,
+// serves a known character without a re-upload. Ids are SHA-256 hex digests, never paths.
+#pragma once
+
+#include <cstdint>
+#include <list>
+#include <memory>
+#include <mutex>
+#include <optional>
+#include <string>
+#include <unordered_map>
+#include <vector>
+
+#include "springblend/rig.h"
+
+namespace springblend::server {
+
+// Everything that defines a character: the meshes and the build options.
+struct CharacterData {
+  std::string name;  // a label, not part of the id
+  std::vector<std::string> target_names;
+  Faces faces;
+  std::vector<Points> shapes;  // rest, then one per target
+  RigOptions options;
+};
+
+// The canonical bytes of a character (what is hashed and stored) and back.
+std::string Serialize(const CharacterData& data);
+CharacterData Deserialize(const std::string& bytes);  // throws Error(kInvalidInput) when malformed
+std::string ContentId(const CharacterData& data);       // hex SHA-256 of Serialize without the name
+
+struct StoreOptions {
+  std::string directory;  // empty: memory only
+  std::int64_t memory_budget_bytes = 4LL << 30;
+};
+
+struct StoreStats {
+  std::int64_t hits = 0, misses = 0, evictions = 0, bytes = 0, characters = 0, rebuilds_from_disk = 0,
+               corrupt_files = 0;
+};
+
+class CharacterStore {
+ public:
+  struct Entry {
+    std::string id;
+    std::string name;
+    std::shared_ptr<const Rig> rig;
+    std::int64_t bytes = 0;
+  };
+
+  explicit CharacterStore(StoreOptions options);
+
+  // Builds (or finds) the character. Returns the entry and whether it was already known.
+  std::pair<std::shared_ptr<const Entry>, bool> Put(const CharacterData& data);
+  // From memory, else from the directory (rebuilding the rig); nullptr if unknown anywhere.
+  std::shared_ptr<const Entry> Get(const std::string& id);
+  std::vector<std::shared_ptr<const Entry>> List();
+  bool Delete(const std::string& id);
+  StoreStats stats() const;
+
+  static bool ValidId(const std::string& id);
+
+ private:
+  std::shared_ptr<const Entry> Build(const std::string& id, const CharacterData& data);
+  void Insert(std::shared_ptr<const Entry> entry);  // caller holds mutex_
+  std::string PathOf(const std::string& id) const;
+  void WriteFile(const std::string& id, const std::string& bytes) const;
+  std::optional<std::string> ReadFile(const std::string& id);
+
+  StoreOptions options_;
+  mutable std::mutex mutex_;
+  std::list<std::string> lru_;  // most recent first
+  struct Slot {
+    std::shared_ptr<const Entry> entry;
+    std::list<std::string>::iterator position;
+  };
+  std::unordered_map<std::string, Slot> entries_;
+  StoreStats stats_;
+};
+
+}  // namespace springblend::server

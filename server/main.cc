@@ -1,0 +1,105 @@
+// springblend-server: the farm server. main only reads flags, builds the services and runs them until
+// SIGTERM or SIGINT, then drains in-flight streams.
+#include <grpcpp/ext/proto_server_reflection_plugin.h>
+#include <grpcpp/health_check_service_interface.h>
+#include <grpcpp/grpcpp.h>
+#include <signal.h>
+#include <spdlog/spdlog.h>
+#include <unistd.h>
+
+#include <CLI/CLI.hpp>
+#include <chrono>
+#include <cstdlib>
+#include <filesystem>
+#include <iostream>
+#include <thread>
+
+#include "character_store.h"
+#include "service.h"
+#include "solver_pool.h"
+#include "springblend/error.h"
+#include "springblend/runtime.h"
+
+int main(int argc, char** argv) {
+  springblend::ConfigureNumericalThreads(argv);
+  using namespace springblend::server;
+
+  CLI::App app{"springblend-server: caches characters' spring structures and streams solved blendshapes"};
+  std::string listen = "127.0.0.1:50051";
+  std::string cache_dir;
+  int workers = static_cast<int>(std::max(1u, std::thread::hardware_concurrency()));
+  int queue = 64;
+  std::int64_t memory_mb = 4096;
+  Limits limits;
+  std::string replica;
+  int drain_seconds = 30;
+  app.add_option("--listen", listen, "address:port to serve on (port 0 picks a free one)");
+  app.add_option("--cache-dir", cache_dir, "directory of uploaded characters, shared by replicas (default: "
+                                           "$XDG_CACHE_HOME/springblend or ~/.cache/springblend)");
+  app.add_option("--workers", workers, "solver threads")->check(CLI::Range(1, 1024));
+  app.add_option("--queue", queue, "jobs waiting for a solver thread before RESOURCE_EXHAUSTED")->check(CLI::Range(1, 100000));
+  app.add_option("--memory-budget-mb", memory_mb, "memory for built characters; least recently used go first")->check(CLI::Range(1, 1 << 20));
+  app.add_option("--max-upload-bytes", limits.max_upload_bytes, "largest upload");
+  app.add_option("--max-vertices", limits.max_vertices, "most vertices in a character");
+  app.add_option("--max-frames", limits.max_frames, "most frames in one solve request");
+  app.add_option("--replica-name", replica, "name reported in each frame's served_by (default: host name)");
+  app.add_option("--drain-seconds", drain_seconds, "on SIGTERM, how long in-flight streams may finish");
+  CLI11_PARSE(app, argc, argv);
+
+  if (cache_dir.empty()) {
+    const char* xdg = std::getenv("XDG_CACHE_HOME");
+    const char* home = std::getenv("HOME");
+    cache_dir = xdg ? std::string(xdg) + "/springblend" : home ? std::string(home) + "/.cache/springblend" : "springblend-cache";
+  }
+  if (replica.empty()) {
+    char host[256] = {0};
+    gethostname(host, sizeof(host) - 1);
+    replica = host;
+  }
+
+  // Signals go to a dedicated thread (blocked everywhere else, so set before any thread starts).
+  sigset_t signals;
+  sigemptyset(&signals);
+  sigaddset(&signals, SIGTERM);
+  sigaddset(&signals, SIGINT);
+  pthread_sigmask(SIG_BLOCK, &signals, nullptr);
+
+  try {
+    CharacterStore store({cache_dir, memory_mb << 20});
+    SolverPool pool(workers, queue);
+    ServiceContext context{store, pool, limits, replica};
+    CharacterServiceImpl characters(context);
+    SolveServiceImpl solves(context);
+
+    grpc::EnableDefaultHealthCheckService(true);
+    grpc::reflection::InitProtoReflectionServerBuilderPlugin();
+    grpc::ServerBuilder builder;
+    int port = 0;
+    builder.AddListeningPort(listen, grpc::InsecureServerCredentials(), &port);
+    builder.RegisterService(&characters);
+    builder.RegisterService(&solves);
+    builder.SetMaxReceiveMessageSize(64 << 20);
+    std::unique_ptr<grpc::Server> server = builder.BuildAndStart();
+    if (!server || port == 0) {
+      std::cerr << "springblend-server: cannot listen on " << listen << "\n";
+      return 2;
+    }
+    const std::string host = listen.substr(0, listen.rfind(':'));
+    std::cout << "springblend-server listening on " << host << ":" << port << std::endl;
+    spdlog::info("listening on {}:{} with {} solver threads, cache {}", host, port, workers, cache_dir);
+
+    std::thread stopper([&] {
+      int signal_number = 0;
+      sigwait(&signals, &signal_number);
+      spdlog::info("signal {}: draining in-flight calls for up to {} s", signal_number, drain_seconds);
+      server->Shutdown(std::chrono::system_clock::now() + std::chrono::seconds(drain_seconds));
+    });
+    server->Wait();
+    stopper.join();
+    spdlog::info("stopped");
+  } catch (const std::exception& e) {
+    std::cerr << "springblend-server: " << e.what() << "\n";
+    return 2;
+  }
+  return 0;
+}

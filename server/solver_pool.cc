@@ -1,0 +1,55 @@
+#include "solver_pool.h"
+
+namespace springblend::server {
+
+SolverPool::SolverPool(int threads, int queue_capacity) : capacity_(static_cast<size_t>(queue_capacity)) {
+  for (int i = 0; i < threads; ++i) workers_.emplace_back([this] { Run(); });
+}
+
+SolverPool::~SolverPool() {
+  {
+    std::lock_guard lock(mutex_);
+    stopping_ = true;
+  }
+  wake_.notify_all();
+  for (auto& w : workers_) w.join();
+}
+
+bool SolverPool::TrySubmit(std::function<void()> job) {
+  {
+    std::lock_guard lock(mutex_);
+    if (stopping_ || queue_.size() >= capacity_) return false;
+    queue_.push_back(std::move(job));
+  }
+  wake_.notify_one();
+  return true;
+}
+
+int SolverPool::queue_depth() const {
+  std::lock_guard lock(mutex_);
+  return static_cast<int>(queue_.size());
+}
+
+int SolverPool::busy() const {
+  std::lock_guard lock(mutex_);
+  return busy_;
+}
+
+void SolverPool::Run() {
+  for (;;) {
+    std::function<void()> job;
+    {
+      std::unique_lock lock(mutex_);
+      wake_.wait(lock, [this] { return stopping_ || !queue_.empty(); });
+      if (queue_.empty()) return;  // stopping and drained
+      job = std::move(queue_.front());
+      queue_.pop_front();
+      ++busy_;
+    }
+    job();
+    std::lock_guard lock(mutex_);
+    --busy_;
+  }
+}
+
+}  // namespace springblend::server

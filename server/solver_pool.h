@@ -1,0 +1,39 @@
+// A fixed set of solver threads with a bounded queue: work is refused (not queued without end) when the
+// queue is full, so an overloaded server answers RESOURCE_EXHAUSTED at once instead of timing everyone out.
+#pragma once
+
+#include <condition_variable>
+#include <deque>
+#include <functional>
+#include <mutex>
+#include <thread>
+#include <vector>
+
+namespace springblend::server {
+
+class SolverPool {
+ public:
+  SolverPool(int threads, int queue_capacity);
+  ~SolverPool();  // finishes queued and running jobs, then joins
+  SolverPool(const SolverPool&) = delete;
+  SolverPool& operator=(const SolverPool&) = delete;
+
+  // False when the queue is full or the pool is stopping.
+  bool TrySubmit(std::function<void()> job);
+  int queue_depth() const;
+  int busy() const;
+  int threads() const { return static_cast<int>(workers_.size()); }
+
+ private:
+  void Run();
+
+  const size_t capacity_;
+  mutable std::mutex mutex_;
+  std::condition_variable wake_;
+  std::deque<std::function<void()>> queue_;
+  int busy_ = 0;
+  bool stopping_ = false;
+  std::vector<std::thread> workers_;
+};
+
+}  // namespace springblend::server

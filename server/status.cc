@@ -1,0 +1,19 @@
+#include "status.h"
+
+#include "springblend/error.h"
+
+namespace springblend::server {
+
+grpc::Status ToStatus(const std::exception& error) {
+  if (const auto* e = dynamic_cast<const Error*>(&error)) {
+    switch (e->code()) {
+      case ErrorCode::kInvalidInput: return {grpc::StatusCode::INVALID_ARGUMENT, e->what()};
+      case ErrorCode::kNotFound: return {grpc::StatusCode::NOT_FOUND, e->what()};
+      case ErrorCode::kNumerical: return {grpc::StatusCode::INTERNAL, std::string("solver: ") + e->what()};
+      case ErrorCode::kInternal: break;
+    }
+  }
+  return {grpc::StatusCode::INTERNAL, std::string("internal error: ") + error.what()};
+}
+
+}  // namespace springblend::server
