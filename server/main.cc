@@ -4,6 +4,7 @@
 #include <grpcpp/health_check_service_interface.h>
 #include <grpcpp/grpcpp.h>
 #include <signal.h>
+#include <spdlog/sinks/stdout_color_sinks.h>
 #include <spdlog/spdlog.h>
 #include <unistd.h>
 
@@ -46,6 +47,10 @@ int main(int argc, char** argv) {
   app.add_option("--drain-seconds", drain_seconds, "on SIGTERM, how long in-flight streams may finish");
   CLI11_PARSE(app, argc, argv);
 
+  // Logs go to stderr; stdout carries only the "listening on" line, for scripts and tests to read.
+  spdlog::set_default_logger(spdlog::stderr_color_mt("springblend"));
+  // A closed stdout or a vanished peer must not kill a shared server.
+  signal(SIGPIPE, SIG_IGN);
   if (cache_dir.empty()) {
     const char* xdg = std::getenv("XDG_CACHE_HOME");
     const char* home = std::getenv("HOME");

@@ -4,6 +4,8 @@
 
 #include <cstring>
 
+#include <fmt/format.h>
+
 #include "grpc/health/v1/health.grpc.pb.h"
 
 namespace springblend {
@@ -32,6 +34,21 @@ std::unique_ptr<grpc::ClientContext> Client::Context(const std::string& characte
 
 v1::Character Client::Upload(const TriangleMesh& rest, const std::vector<TriangleMesh>& targets,
                              const v1::BuildOptions& options, const std::string& name) {
+  // Only the rest mesh's faces travel; every target must share them, so check that here.
+  for (const auto& t : targets) {
+    if (t.faces.rows() != rest.faces.rows()) {
+      throw ClientError(grpc::StatusCode::INVALID_ARGUMENT,
+                        fmt::format("{}: {} faces, but the rest mesh has {}", t.source, t.faces.rows(), rest.faces.rows()));
+    }
+    for (Eigen::Index f = 0; f < rest.faces.rows(); ++f) {
+      if (t.faces.row(f) != rest.faces.row(f)) {
+        throw ClientError(grpc::StatusCode::INVALID_ARGUMENT,
+                          fmt::format("{}: face {} differs from the rest mesh's; every target must have the rest "
+                                      "mesh's faces",
+                                      t.source, f));
+      }
+    }
+  }
   auto context = Context();
   v1::Character response;
   auto writer = characters_->UploadCharacter(context.get(), &response);

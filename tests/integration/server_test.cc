@@ -1,0 +1,290 @@
+// The farm server as users meet it: a real springblend-server process on an ephemeral loopback port, driven
+// through the C++ client library.
+#include <gmock/gmock.h>
+#include <gtest/gtest.h>
+#include <grpcpp/grpcpp.h>
+#include <signal.h>
+#include <sys/wait.h>
+#include <unistd.h>
+
+#include <atomic>
+#include <cmath>
+#include <fstream>
+#include <thread>
+
+#include "springblend/client.h"
+#include "test_util.h"
+
+namespace springblend {
+namespace {
+
+using ::testing::HasSubstr;
+using testing::DataPath;
+using testing::TempDir;
+
+// A server process; stopped with SIGTERM (the graceful path) when the object goes.
+class ServerProcess {
+ public:
+  ServerProcess(const std::string& cache_dir, std::vector<std::string> extra = {}) {
+    int out[2];
+    EXPECT_EQ(pipe(out), 0);
+    pid_ = fork();
+    if (pid_ == 0) {
+      dup2(out[1], STDOUT_FILENO);
+      close(out[0]);
+      std::vector<std::string> args = {SPRINGBLEND_SERVER, "--listen", "127.0.0.1:0", "--cache-dir", cache_dir};
+      args.insert(args.end(), extra.begin(), extra.end());
+      std::vector<char*> argv;
+      for (auto& a : args) argv.push_back(a.data());
+      argv.push_back(nullptr);
+      execv(argv[0], argv.data());
+      _exit(127);
+    }
+    close(out[1]);
+    // The first line says where it listens: "springblend-server listening on 127.0.0.1:PORT".
+    std::string line;
+    char c;
+    while (read(out[0], &c, 1) == 1 && c != '\n') line += c;
+    close(out[0]);
+    const auto colon = line.rfind(':');
+    if (line.find("listening on") != std::string::npos && colon != std::string::npos) {
+      address_ = "127.0.0.1:" + line.substr(colon + 1);
+    }
+  }
+  ~ServerProcess() { Stop(); }
+  int Stop() {
+    if (pid_ <= 0) return -1;
+    kill(pid_, SIGTERM);
+    int status = 0;
+    waitpid(pid_, &status, 0);
+    pid_ = -1;
+    return WIFEXITED(status) ? WEXITSTATUS(status) : -1;
+  }
+  const std::string& address() const { return address_; }
+
+ private:
+  pid_t pid_ = -1;
+  std::string address_;
+};
+
+struct CylinderRig {
+  TriangleMesh rest = LoadMesh(DataPath("cylinder/cylinder.obj"));
+  std::vector<TriangleMesh> targets = {LoadMesh(DataPath("cylinder/poses-2_cylinder-1.obj")),
+                                       LoadMesh(DataPath("cylinder/poses-2_cylinder-3.obj"))};
+};
+
+v1::SolveRequest SweepRequest(const std::string& id, int frames, const std::vector<double>& end) {
+  v1::SolveRequest request;
+  request.set_character_id(id);
+  for (const auto& frame : SweepFrames(end, frames)) {
+    v1::FrameRequest* f = request.add_frames();
+    for (double w : frame.weights) f->add_weights(w);
+  }
+  return request;
+}
+
+int StatusOf(const std::function<void()>& call) {
+  try {
+    call();
+  } catch (const ClientError& e) {
+    return e.code();
+  }
+  return 0;
+}
+
+std::string MessageOf(const std::function<void()>& call) {
+  try {
+    call();
+  } catch (const ClientError& e) {
+    return e.what();
+  }
+  return "";
+}
+
+class ServerTest : public ::testing::Test {
+ protected:
+  void SetUp() override {
+    server_ = std::make_unique<ServerProcess>(cache_.path().string(), std::vector<std::string>{"--workers", "2"});
+    ASSERT_FALSE(server_->address().empty()) << "the server did not start";
+    client_ = std::make_unique<Client>(ClientOptions{server_->address()});
+  }
+  TempDir cache_;
+  std::unique_ptr<ServerProcess> server_;
+  std::unique_ptr<Client> client_;
+  CylinderRig cylinder_;
+};
+
+TEST_F(ServerTest, ReportsServing) { EXPECT_TRUE(client_->Healthy()); }
+
+TEST_F(ServerTest, UploadTwiceIsACacheHitWithTheSameId) {
+  const v1::Character first = client_->Upload(cylinder_.rest, cylinder_.targets, {}, "cylinder");
+  EXPECT_FALSE(first.cache_hit());
+  EXPECT_EQ(first.id().size(), 64u);
+  EXPECT_GT(first.summary().vertices(), 420u);
+  EXPECT_EQ(first.target_names_size(), 2);
+  const v1::Character second = client_->Upload(cylinder_.rest, cylinder_.targets, {}, "another label");
+  EXPECT_TRUE(second.cache_hit());
+  EXPECT_EQ(second.id(), first.id());
+}
+
+TEST_F(ServerTest, ASweepStreamsEveryFrameEqualToTheLocalSolve) {
+  const v1::Character c = client_->Upload(cylinder_.rest, cylinder_.targets);
+  const std::vector<double> end = {0.8, 0.3};
+  std::vector<Points> remote;
+  const int received = client_->Solve(SweepRequest(c.id(), 36, end), [&](const v1::SolvedFrame& frame) {
+    EXPECT_EQ(frame.index(), remote.size());
+    EXPECT_TRUE(frame.summary().converged()) << frame.summary().message();
+    remote.push_back(Client::Decode(frame.positions()));
+  });
+  ASSERT_EQ(received, 36);
+  auto rig = Rig::Build(cylinder_.rest, cylinder_.targets);
+  Solver local(rig);
+  Points x;
+  const auto frames = SweepFrames(end, 36);
+  const double diagonal = rig->summary().bounding_box_diagonal;
+  for (size_t i = 0; i < frames.size(); ++i) {
+    ASSERT_TRUE(local.Solve(frames[i], &x).converged());
+    EXPECT_LE(testing::MaxDistance(remote[i], x), 1e-6 * diagonal) << "frame " << i;
+  }
+}
+
+TEST_F(ServerTest, ARestartServesKnownCharactersFromTheCacheDirectory) {
+  const v1::Character c = client_->Upload(cylinder_.rest, cylinder_.targets);
+  EXPECT_EQ(server_->Stop(), 0);  // SIGTERM drains and exits cleanly
+  server_ = std::make_unique<ServerProcess>(cache_.path().string());
+  Client fresh({server_->address()});
+  const v1::Character again = fresh.Get(c.id());
+  EXPECT_EQ(again.id(), c.id());
+  EXPECT_EQ(again.summary().springs(), c.summary().springs());
+  EXPECT_EQ(fresh.Solve(SweepRequest(c.id(), 3, {0.5, 0.5}), [](const v1::SolvedFrame&) {}), 3);
+}
+
+TEST_F(ServerTest, ACorruptCacheFileIsNeverServed) {
+  const v1::Character c = client_->Upload(cylinder_.rest, cylinder_.targets);
+  server_->Stop();
+  const std::string file = (cache_.path() / (c.id() + ".sbchar")).string();
+  ASSERT_TRUE(std::filesystem::exists(file));
+  {
+    std::fstream f(file, std::ios::in | std::ios::out | std::ios::binary);
+    f.seekp(200);
+    f.write("garbage", 7);
+  }
+  server_ = std::make_unique<ServerProcess>(cache_.path().string());
+  Client fresh({server_->address()});
+  EXPECT_EQ(StatusOf([&] { fresh.Get(c.id()); }), grpc::StatusCode::NOT_FOUND);
+  EXPECT_FALSE(std::filesystem::exists(file));
+  // A new upload rebuilds and serves it.
+  EXPECT_FALSE(fresh.Upload(cylinder_.rest, cylinder_.targets).cache_hit());
+  EXPECT_EQ(fresh.Get(c.id()).id(), c.id());
+}
+
+TEST_F(ServerTest, BadRequestsGetClearStatusesAndTheServerKeepsServing) {
+  const v1::Character c = client_->Upload(cylinder_.rest, cylinder_.targets);
+  const std::string unknown(64, 'a');
+  EXPECT_EQ(StatusOf([&] { client_->Solve(SweepRequest(unknown, 2, {1, 0}), [](auto&) {}); }),
+            grpc::StatusCode::NOT_FOUND);
+  EXPECT_EQ(StatusOf([&] { client_->Get("../../etc/passwd"); }), grpc::StatusCode::NOT_FOUND);
+
+  v1::SolveRequest wrong_count = SweepRequest(c.id(), 2, {1.0});
+  EXPECT_EQ(StatusOf([&] { client_->Solve(wrong_count, [](auto&) {}); }), grpc::StatusCode::INVALID_ARGUMENT);
+  EXPECT_THAT(MessageOf([&] { client_->Solve(wrong_count, [](auto&) {}); }),
+              HasSubstr("frames[0]: weights has 1 entries but the rig has 2 targets"));
+
+  v1::SolveRequest nan = SweepRequest(c.id(), 2, {0.5, 0.5});
+  nan.mutable_frames(1)->set_weights(1, std::nan(""));
+  EXPECT_THAT(MessageOf([&] { client_->Solve(nan, [](auto&) {}); }), HasSubstr("frames[1]: weights[1]"));
+
+  v1::SolveRequest bad_pin = SweepRequest(c.id(), 1, {0.5, 0.5});
+  v1::Pin* pin = bad_pin.mutable_frames(0)->add_pins();
+  pin->set_vertex(100000);
+  EXPECT_EQ(StatusOf([&] { client_->Solve(bad_pin, [](auto&) {}); }), grpc::StatusCode::INVALID_ARGUMENT);
+  EXPECT_THAT(MessageOf([&] { client_->Solve(bad_pin, [](auto&) {}); }), HasSubstr("vertex 100000"));
+
+  v1::SolveRequest bad_collider = SweepRequest(c.id(), 1, {0.5, 0.5});
+  bad_collider.add_colliders()->mutable_sphere()->set_radius(-1);
+  EXPECT_THAT(MessageOf([&] { client_->Solve(bad_collider, [](auto&) {}); }), HasSubstr("colliders[0]"));
+
+  // A mismatched target refused at upload, naming the target.
+  std::vector<TriangleMesh> mismatched = cylinder_.targets;
+  std::swap(mismatched[1].faces(7, 0), mismatched[1].faces(7, 1));
+  EXPECT_THAT(MessageOf([&] { client_->Upload(cylinder_.rest, mismatched); }), HasSubstr("face"));
+
+  EXPECT_TRUE(client_->Healthy());
+  EXPECT_EQ(client_->Solve(SweepRequest(c.id(), 2, {0.5, 0.5}), [](auto&) {}), 2);
+}
+
+TEST(ServerLimits, AnUploadOverTheLimitIsRefusedClearly) {
+  TempDir cache;
+  ServerProcess server(cache.path().string(), {"--max-vertices", "100"});
+  Client client({server.address()});
+  CylinderRig cylinder;
+  try {
+    client.Upload(cylinder.rest, cylinder.targets);
+    ADD_FAILURE() << "the upload should have been refused";
+  } catch (const ClientError& e) {
+    EXPECT_EQ(e.code(), grpc::StatusCode::RESOURCE_EXHAUSTED);
+    EXPECT_THAT(e.what(), HasSubstr("over the limit of 100 (--max-vertices)"));
+  }
+  EXPECT_TRUE(client.Healthy());
+}
+
+TEST_F(ServerTest, FourConcurrentClientsAllGetCorrectFrames) {
+  const v1::Character c = client_->Upload(cylinder_.rest, cylinder_.targets);
+  auto rig = Rig::Build(cylinder_.rest, cylinder_.targets);
+  std::vector<std::vector<double>> ends = {{1, 0}, {0, 1}, {0.5, 0.5}, {0.3, 0.6}};
+  std::vector<Points> last(4);
+  std::vector<int> counts(4, 0);
+  std::vector<std::thread> threads;
+  for (int i = 0; i < 4; ++i) {
+    threads.emplace_back([&, i] {
+      Client client({server_->address()});
+      counts[i] = client.Solve(SweepRequest(c.id(), 6, ends[i]),
+                               [&](const v1::SolvedFrame& f) { last[i] = Client::Decode(f.positions()); });
+    });
+  }
+  for (auto& t : threads) t.join();
+  for (int i = 0; i < 4; ++i) {
+    EXPECT_EQ(counts[i], 6);
+    Solver local(rig);
+    Points x;
+    for (const auto& frame : SweepFrames(ends[i], 6)) local.Solve(frame, &x);
+    EXPECT_LE(testing::MaxDistance(last[i], x), 1e-6 * rig->summary().bounding_box_diagonal) << "client " << i;
+  }
+}
+
+TEST(ServerCancel, ACancelledStreamFreesItsWorker) {
+  TempDir cache;
+  ServerProcess server(cache.path().string(), {"--workers", "1"});
+  Client client({server.address()});
+  CylinderRig cylinder;
+  const v1::Character c = client.Upload(cylinder.rest, cylinder.targets);
+  // A long request on the only worker, cancelled after its first frame.
+  {
+    auto channel = grpc::CreateChannel(server.address(), grpc::InsecureChannelCredentials());
+    auto stub = v1::SolveService::NewStub(channel);
+    grpc::ClientContext context;
+    auto reader = stub->Solve(&context, SweepRequest(c.id(), 2000, {1, 1}));
+    v1::SolvedFrame frame;
+    ASSERT_TRUE(reader->Read(&frame));
+    context.TryCancel();
+    while (reader->Read(&frame)) {
+    }
+    EXPECT_EQ(reader->Finish().error_code(), grpc::StatusCode::CANCELLED);
+  }
+  // The worker is free again: a short request completes well within its deadline (the cancelled one
+  // would have needed minutes).
+  Client quick({server.address(), std::chrono::seconds(60)});
+  EXPECT_EQ(quick.Solve(SweepRequest(c.id(), 2, {0.5, 0.5}), [](auto&) {}), 2);
+}
+
+TEST_F(ServerTest, DeleteRemovesTheCharacterEverywhere) {
+  const v1::Character c = client_->Upload(cylinder_.rest, cylinder_.targets);
+  ASSERT_EQ(client_->List().size(), 1u);
+  client_->Delete(c.id());
+  EXPECT_EQ(StatusOf([&] { client_->Get(c.id()); }), grpc::StatusCode::NOT_FOUND);
+  EXPECT_FALSE(std::filesystem::exists(cache_.path() / (c.id() + ".sbchar")));
+  EXPECT_EQ(StatusOf([&] { client_->Delete(c.id()); }), grpc::StatusCode::NOT_FOUND);
+}
+
+}  // namespace
+}  // namespace springblend
