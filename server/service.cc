@@ -5,6 +5,7 @@
 #include <chrono>
 #include <condition_variable>
 #include <mutex>
+#include <optional>
 
 #include "springblend/error.h"
 #include "status.h"
@@ -176,6 +177,167 @@ class SolveReactor final : public grpc::ServerWriteReactor<v1::SolvedFrame> {
   bool cancelled_ = false;
 };
 
+// An interactive session. Frames arrive on gRPC threads and only replace the pending one; a pool job solves
+// whatever is pending, newest first, and gives its worker back as soon as nothing is. The Solver (and with
+// it the warm start) lives as long as the session.
+class InteractiveReactor final : public grpc::ServerBidiReactor<v1::InteractiveRequest, v1::SolvedFrame> {
+ public:
+  InteractiveReactor(grpc::CallbackServerContext* call, ServiceContext& context) : call_(call), context_(context) {
+    StartRead(&incoming_);
+  }
+
+  void OnReadDone(bool ok) override {
+    std::unique_lock lock(mutex_);
+    if (finished_) return;
+    if (!ok) {
+      reads_done_ = true;
+      FinishIfIdle(lock, grpc::Status::OK);
+      return;
+    }
+    if (!started_) {
+      if (!incoming_.has_start()) {
+        FinishLocked(lock, {grpc::StatusCode::INVALID_ARGUMENT, "the first message must be a start message"});
+        return;
+      }
+      started_ = true;
+      start_ = incoming_.start();
+    } else if (incoming_.has_frame()) {
+      if (pending_) ++dropped_;
+      pending_ = incoming_.frame();
+      pending_index_ = received_++;
+    } else {
+      FinishLocked(lock, {grpc::StatusCode::INVALID_ARGUMENT, "only the first message may be a start message"});
+      return;
+    }
+    if (!job_running_ && (pending_ || !setup_requested_)) {
+      setup_requested_ = true;
+      job_running_ = true;
+      if (!context_.pool.TrySubmit([this] { Work(); })) {
+        job_running_ = false;
+        FinishLocked(lock, kQueueFull);
+        return;
+      }
+    }
+    lock.unlock();
+    StartRead(&incoming_);
+  }
+
+  void OnWriteDone(bool ok) override {
+    std::lock_guard lock(mutex_);
+    writing_ = false;
+    if (!ok) cancelled_ = true;
+    wake_.notify_all();
+  }
+  void OnCancel() override {
+    std::unique_lock lock(mutex_);
+    cancelled_ = true;
+    wake_.notify_all();
+    FinishIfIdle(lock, {grpc::StatusCode::CANCELLED, "the client cancelled the session"});
+  }
+  void OnDone() override { delete this; }
+
+ private:
+  // Both with mutex_ held. Finish is called exactly once, and never while a job runs.
+  void FinishLocked(std::unique_lock<std::mutex>&, const grpc::Status& status) {
+    if (finished_) return;
+    finished_ = true;
+    Finish(status);
+  }
+  void FinishIfIdle(std::unique_lock<std::mutex>& lock, const grpc::Status& status) {
+    if (!job_running_ && !pending_) FinishLocked(lock, status);
+  }
+
+  void Work() {
+    std::unique_lock lock(mutex_);
+    if (!solver_) {
+      lock.unlock();
+      grpc::Status status = Start();
+      lock.lock();
+      if (!status.ok()) {
+        job_running_ = false;
+        pending_.reset();
+        FinishLocked(lock, status);
+        return;
+      }
+    }
+    while (pending_ && !cancelled_) {
+      const v1::FrameRequest request = std::move(*pending_);
+      const std::uint32_t index = pending_index_;
+      pending_.reset();
+      lock.unlock();
+      grpc::Status status;
+      try {
+        Frame frame = ToFrame(request);
+        Points positions;
+        const SolveSummary summary = solver_->Solve(frame, &positions);
+        out_ = ToProto(static_cast<int>(index), positions, entry_->rig->rest().faces, summary, job_.with_normals,
+                       context_.replica_name);
+      } catch (const std::exception& e) {
+        status = ToStatus(e);
+      }
+      lock.lock();
+      if (!status.ok()) {
+        job_running_ = false;
+        pending_.reset();
+        FinishLocked(lock, status);
+        return;
+      }
+      writing_ = true;
+      lock.unlock();
+      StartWrite(&out_);
+      lock.lock();
+      wake_.wait(lock, [this] { return !writing_; });
+    }
+    job_running_ = false;
+    if (cancelled_) {
+      pending_.reset();
+      FinishLocked(lock, {grpc::StatusCode::CANCELLED, "the client cancelled the session"});
+    } else if (reads_done_) {
+      FinishIfIdle(lock, grpc::Status::OK);
+    }
+  }
+
+  grpc::Status Start() {
+    entry_ = context_.store.Get(start_.character_id());
+    if (!entry_) return NotFound(start_.character_id());
+    try {
+      // Reuse the request conversion with one neutral frame to check colliders and options.
+      v1::SolveRequest probe;
+      *probe.mutable_colliders() = start_.colliders();
+      *probe.mutable_options() = start_.options();
+      probe.add_frames()->mutable_weights()->Resize(entry_->rig->num_targets(), 0.0);
+      job_ = ToSolveJob(probe, *entry_->rig, context_.limits);
+      solver_ = std::make_unique<Solver>(entry_->rig, job_.options);
+      solver_->SetColliders(job_.colliders);
+    } catch (const std::exception& e) {
+      return ToStatus(e);
+    }
+    return grpc::Status::OK;
+  }
+
+  Frame ToFrame(const v1::FrameRequest& request) const {
+    v1::SolveRequest one;
+    *one.mutable_colliders() = start_.colliders();
+    *one.add_frames() = request;
+    return ToSolveJob(one, *entry_->rig, context_.limits).frames.front();
+  }
+
+  grpc::CallbackServerContext* call_;
+  ServiceContext& context_;
+  v1::InteractiveRequest incoming_;
+  v1::InteractiveStart start_;
+  std::shared_ptr<const CharacterStore::Entry> entry_;
+  SolveJob job_;
+  std::unique_ptr<Solver> solver_;
+  v1::SolvedFrame out_;
+  std::optional<v1::FrameRequest> pending_;
+  std::uint32_t pending_index_ = 0, received_ = 0, dropped_ = 0;
+  std::mutex mutex_;
+  std::condition_variable wake_;
+  bool started_ = false, setup_requested_ = false, job_running_ = false, writing_ = false, reads_done_ = false, cancelled_ = false,
+       finished_ = false;
+};
+
 }  // namespace
 
 grpc::ServerReadReactor<v1::UploadChunk>* CharacterServiceImpl::UploadCharacter(grpc::CallbackServerContext* call,
@@ -216,6 +378,11 @@ grpc::ServerUnaryReactor* CharacterServiceImpl::DeleteCharacter(grpc::CallbackSe
     spdlog::info("deleted {}", request->id().substr(0, 12));
     return grpc::Status::OK;
   });
+}
+
+grpc::ServerBidiReactor<v1::InteractiveRequest, v1::SolvedFrame>* SolveServiceImpl::Interactive(
+    grpc::CallbackServerContext* call) {
+  return new InteractiveReactor(call, context_);
 }
 
 grpc::ServerWriteReactor<v1::SolvedFrame>* SolveServiceImpl::Solve(grpc::CallbackServerContext* call,

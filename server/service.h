@@ -41,6 +41,8 @@ class SolveServiceImpl final : public v1::SolveService::CallbackService {
   explicit SolveServiceImpl(ServiceContext& context) : context_(context) {}
   grpc::ServerWriteReactor<v1::SolvedFrame>* Solve(grpc::CallbackServerContext* call,
                                                    const v1::SolveRequest* request) override;
+  grpc::ServerBidiReactor<v1::InteractiveRequest, v1::SolvedFrame>* Interactive(
+      grpc::CallbackServerContext* call) override;
 
  private:
   ServiceContext& context_;

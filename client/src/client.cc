@@ -138,6 +138,28 @@ int Client::Solve(const v1::SolveRequest& request, const std::function<void(cons
   return received;
 }
 
+std::unique_ptr<InteractiveSession> Client::StartInteractive(const v1::InteractiveStart& start) {
+  auto session = std::unique_ptr<InteractiveSession>(new InteractiveSession());
+  session->context_ = Context(start.character_id());
+  session->stream_ = solves_->Interactive(session->context_.get());
+  v1::InteractiveRequest first;
+  *first.mutable_start() = start;
+  session->stream_->Write(first);
+  return session;
+}
+
+bool InteractiveSession::Send(const v1::FrameRequest& frame) {
+  v1::InteractiveRequest request;
+  *request.mutable_frame() = frame;
+  return stream_->Write(request);
+}
+
+bool InteractiveSession::Next(v1::SolvedFrame* frame) { return stream_->Read(frame); }
+
+void InteractiveSession::Close() { stream_->WritesDone(); }
+
+void InteractiveSession::Finish() { Check(stream_->Finish()); }
+
 Points Client::Decode(const std::string& packed) {
   const size_t count = packed.size() / (3 * sizeof(float));
   Eigen::Matrix<float, Eigen::Dynamic, 3, Eigen::RowMajor> values(static_cast<Eigen::Index>(count), 3);

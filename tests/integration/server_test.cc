@@ -7,6 +7,7 @@
 #include <sys/wait.h>
 #include <unistd.h>
 
+#include <algorithm>
 #include <atomic>
 #include <cmath>
 #include <fstream>
@@ -284,6 +285,65 @@ TEST_F(ServerTest, DeleteRemovesTheCharacterEverywhere) {
   EXPECT_EQ(StatusOf([&] { client_->Get(c.id()); }), grpc::StatusCode::NOT_FOUND);
   EXPECT_FALSE(std::filesystem::exists(cache_.path() / (c.id() + ".sbchar")));
   EXPECT_EQ(StatusOf([&] { client_->Delete(c.id()); }), grpc::StatusCode::NOT_FOUND);
+}
+
+}  // namespace
+}  // namespace springblend
+
+namespace springblend {
+namespace {
+
+TEST_F(ServerTest, AnInteractiveSessionAnswersTheNewestFrameAndDropsStaleOnes) {
+  const v1::Character c = client_->Upload(cylinder_.rest, cylinder_.targets);
+  v1::InteractiveStart start;
+  start.set_character_id(c.id());
+  auto session = client_->StartInteractive(start);
+  // A slider dragged from 0 to 1 in 40 quick steps.
+  const int sent = 40;
+  for (int i = 0; i < sent; ++i) {
+    v1::FrameRequest frame;
+    frame.add_weights(i / double(sent - 1));
+    frame.add_weights(0.0);
+    ASSERT_TRUE(session->Send(frame));
+  }
+  session->Close();
+  std::vector<std::uint32_t> indices;
+  Points last;
+  v1::SolvedFrame answer;
+  while (session->Next(&answer)) {
+    EXPECT_TRUE(answer.summary().converged());
+    indices.push_back(answer.index());
+    last = Client::Decode(answer.positions());
+  }
+  session->Finish();
+  ASSERT_FALSE(indices.empty());
+  EXPECT_TRUE(std::is_sorted(indices.begin(), indices.end()));
+  EXPECT_EQ(indices.back(), static_cast<std::uint32_t>(sent - 1));  // the newest is always answered
+  EXPECT_LT(indices.size(), static_cast<size_t>(sent));              // stale frames were dropped
+  // The final answer is the equilibrium at the slider's end: the first target.
+  EXPECT_LE(testing::MaxDistance(last, cylinder_.targets[0].vertices),
+            1e-6 * BoundingBoxDiagonal(cylinder_.rest.vertices));
+}
+
+TEST_F(ServerTest, AnInteractiveSessionRefusesAnUnknownCharacter) {
+  v1::InteractiveStart start;
+  start.set_character_id(std::string(64, 'b'));
+  auto session = client_->StartInteractive(start);
+  v1::FrameRequest frame;
+  frame.add_weights(0.5);
+  frame.add_weights(0.5);
+  session->Send(frame);
+  session->Close();
+  v1::SolvedFrame answer;
+  while (session->Next(&answer)) {
+  }
+  try {
+    session->Finish();
+    ADD_FAILURE() << "expected NOT_FOUND";
+  } catch (const ClientError& e) {
+    EXPECT_EQ(e.code(), grpc::StatusCode::NOT_FOUND);
+  }
+  EXPECT_TRUE(client_->Healthy());
 }
 
 }  // namespace

@@ -32,6 +32,21 @@ struct ClientOptions {
 // The metadata header that names the character of a call, so a load balancer can route by it.
 inline constexpr char kCharacterHeader[] = "x-springblend-character";
 
+// A slider session: Send frames as the user moves; Next returns answers as they come (the server answers the
+// newest frame and drops overtaken ones). Close half-closes and drains the remaining answers.
+class InteractiveSession {
+ public:
+  bool Send(const v1::FrameRequest& frame);
+  bool Next(v1::SolvedFrame* frame);  // false when the stream has ended
+  void Close();                       // then Next until false, then Finish
+  void Finish();                      // throws ClientError unless the session ended OK
+
+ private:
+  friend class Client;
+  std::unique_ptr<grpc::ClientContext> context_;
+  std::unique_ptr<grpc::ClientReaderWriter<v1::InteractiveRequest, v1::SolvedFrame>> stream_;
+};
+
 class Client {
  public:
   explicit Client(ClientOptions options);
@@ -46,6 +61,8 @@ class Client {
   bool Healthy();
   // Streams the frames; on_frame runs for each as it arrives. Returns the number of frames received.
   int Solve(const v1::SolveRequest& request, const std::function<void(const v1::SolvedFrame&)>& on_frame);
+
+  std::unique_ptr<InteractiveSession> StartInteractive(const v1::InteractiveStart& start);
 
   // Decodes a SolvedFrame's float32 positions (or normals) into #V by 3 doubles.
   static Points Decode(const std::string& packed);
