@@ -8,7 +8,7 @@ packages=(
   libeigen3-dev libopenmesh-dev libtet1.5-dev libcgal-dev libgmp-dev libmpfr-dev
   libsuitesparse-dev libopenblas-dev
   libspdlog-dev libfmt-dev libcli11-dev nlohmann-json3-dev libtbb-dev
-  libgrpc++-dev libprotobuf-dev protobuf-compiler protobuf-compiler-grpc
+  libgrpc++-dev libprotobuf-dev protobuf-compiler protobuf-compiler-grpc libssl-dev
   libgtest-dev libgmock-dev libbenchmark-dev
 )
 

@@ -7,6 +7,7 @@
 #include <spdlog/sinks/stdout_color_sinks.h>
 #include <spdlog/spdlog.h>
 #include <unistd.h>
+#include <fmt/format.h>
 
 #include <CLI/CLI.hpp>
 #include <chrono>
@@ -16,6 +17,7 @@
 #include <thread>
 
 #include "character_store.h"
+#include "metrics.h"
 #include "service.h"
 #include "solver_pool.h"
 #include "springblend/error.h"
@@ -34,6 +36,7 @@ int main(int argc, char** argv) {
   Limits limits;
   std::string replica;
   int drain_seconds = 30;
+  std::string metrics_listen;
   app.add_option("--listen", listen, "address:port to serve on (port 0 picks a free one)");
   app.add_option("--cache-dir", cache_dir, "directory of uploaded characters, shared by replicas (default: "
                                            "$XDG_CACHE_HOME/springblend or ~/.cache/springblend)");
@@ -45,6 +48,7 @@ int main(int argc, char** argv) {
   app.add_option("--max-frames", limits.max_frames, "most frames in one solve request");
   app.add_option("--replica-name", replica, "name reported in each frame's served_by (default: host name)");
   app.add_option("--drain-seconds", drain_seconds, "on SIGTERM, how long in-flight streams may finish");
+  app.add_option("--metrics", metrics_listen, "serve Prometheus metrics at http://ADDRESS:PORT/metrics (off when empty)");
   CLI11_PARSE(app, argc, argv);
 
   // Logs go to stderr; stdout carries only the "listening on" line, for scripts and tests to read.
@@ -72,7 +76,31 @@ int main(int argc, char** argv) {
   try {
     CharacterStore store({cache_dir, memory_mb << 20});
     SolverPool pool(workers, queue);
-    ServiceContext context{store, pool, limits, replica};
+    Metrics metrics;
+    ServiceContext context{store, pool, limits, replica, metrics};
+    std::unique_ptr<MetricsEndpoint> metrics_endpoint;
+    if (!metrics_listen.empty()) {
+      metrics_endpoint = std::make_unique<MetricsEndpoint>(metrics_listen, [&] {
+        return metrics.Render([&] {
+          const StoreStats s = store.stats();
+          return fmt::format(
+              "# TYPE springblend_cache_hits_total counter\nspringblend_cache_hits_total {}\n"
+              "# TYPE springblend_cache_misses_total counter\nspringblend_cache_misses_total {}\n"
+              "# TYPE springblend_cache_evictions_total counter\nspringblend_cache_evictions_total {}\n"
+              "# TYPE springblend_cache_rebuilds_from_disk_total counter\nspringblend_cache_rebuilds_from_disk_total {}\n"
+              "# TYPE springblend_cache_corrupt_files_total counter\nspringblend_cache_corrupt_files_total {}\n"
+              "# TYPE springblend_cache_bytes gauge\nspringblend_cache_bytes {}\n"
+              "# TYPE springblend_cache_characters gauge\nspringblend_cache_characters {}\n"
+              "# TYPE springblend_queue_depth gauge\nspringblend_queue_depth {}\n"
+              "# TYPE springblend_workers_busy gauge\nspringblend_workers_busy {}\n"
+              "# TYPE springblend_workers gauge\nspringblend_workers {}\n",
+              s.hits, s.misses, s.evictions, s.rebuilds_from_disk, s.corrupt_files, s.bytes, s.characters,
+              pool.queue_depth(), pool.busy(), pool.threads());
+        });
+      });
+      std::cout << "springblend-server metrics on http://" << metrics_listen.substr(0, metrics_listen.rfind(':'))
+                << ":" << metrics_endpoint->port() << "/metrics" << std::endl;
+    }
     CharacterServiceImpl characters(context);
     SolveServiceImpl solves(context);
 

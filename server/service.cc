@@ -13,23 +13,42 @@
 namespace springblend::server {
 namespace {
 
+const char* CodeName(grpc::StatusCode code) {
+  switch (code) {
+    case grpc::StatusCode::OK: return "OK";
+    case grpc::StatusCode::CANCELLED: return "CANCELLED";
+    case grpc::StatusCode::INVALID_ARGUMENT: return "INVALID_ARGUMENT";
+    case grpc::StatusCode::DEADLINE_EXCEEDED: return "DEADLINE_EXCEEDED";
+    case grpc::StatusCode::NOT_FOUND: return "NOT_FOUND";
+    case grpc::StatusCode::RESOURCE_EXHAUSTED: return "RESOURCE_EXHAUSTED";
+    case grpc::StatusCode::INTERNAL: return "INTERNAL";
+    default: return "OTHER";
+  }
+}
+
 const grpc::Status kQueueFull(grpc::StatusCode::RESOURCE_EXHAUSTED,
                               "the server's solve queue is full; retry later or add replicas");
 
 // Runs `work` on the pool and finishes the unary call with its status; refuses at once when the queue is full.
 template <typename Work>
-grpc::ServerUnaryReactor* OnPool(grpc::CallbackServerContext* call, SolverPool& pool, Work work) {
+grpc::ServerUnaryReactor* OnPool(grpc::CallbackServerContext* call, ServiceContext& context, const char* method,
+                                 Work work) {
   grpc::ServerUnaryReactor* reactor = call->DefaultReactor();
-  const bool queued = pool.TrySubmit([reactor, work = std::move(work)]() mutable {
+  Metrics& metrics = context.metrics;
+  const bool queued = context.pool.TrySubmit([reactor, &metrics, method, work = std::move(work)]() mutable {
     grpc::Status status;
     try {
       status = work();
     } catch (const std::exception& e) {
       status = ToStatus(e);
     }
+    metrics.CountRequest(method, CodeName(status.error_code()));
     reactor->Finish(status);
   });
-  if (!queued) reactor->Finish(kQueueFull);
+  if (!queued) {
+    metrics.CountRequest(method, CodeName(kQueueFull.error_code()));
+    reactor->Finish(kQueueFull);
+  }
   return reactor;
 }
 
@@ -48,7 +67,7 @@ class UploadReactor final : public grpc::ServerReadReactor<v1::UploadChunk> {
   void OnReadDone(bool ok) override {
     if (!ok) {
       if (call_->IsCancelled()) {
-        Finish({grpc::StatusCode::CANCELLED, "the upload was cancelled"});
+        Done({grpc::StatusCode::CANCELLED, "the upload was cancelled"});
         return;
       }
       Complete();
@@ -58,7 +77,7 @@ class UploadReactor final : public grpc::ServerReadReactor<v1::UploadChunk> {
       assembler_.Add(chunk_);
     } catch (const std::exception& e) {
       const grpc::Status status = ToStatus(e);
-      Finish(assembler_.over_limit() ? grpc::Status(grpc::StatusCode::RESOURCE_EXHAUSTED, status.error_message())
+      Done(assembler_.over_limit() ? grpc::Status(grpc::StatusCode::RESOURCE_EXHAUSTED, status.error_message())
                                      : status);
       return;
     }
@@ -67,6 +86,10 @@ class UploadReactor final : public grpc::ServerReadReactor<v1::UploadChunk> {
   void OnDone() override { delete this; }
 
  private:
+  void Done(const grpc::Status& status) {
+    context_.metrics.CountRequest("UploadCharacter", CodeName(status.error_code()));
+    Finish(status);
+  }
   void Complete() {
     const bool queued = context_.pool.TrySubmit([this] {
       grpc::Status status;
@@ -80,9 +103,9 @@ class UploadReactor final : public grpc::ServerReadReactor<v1::UploadChunk> {
         status = ToStatus(e);
         spdlog::warn("upload refused: {}", status.error_message());
       }
-      Finish(status);
+      Done(status);
     });
-    if (!queued) Finish(kQueueFull);
+    if (!queued) Done(kQueueFull);
   }
 
   grpc::CallbackServerContext* call_;
@@ -98,7 +121,7 @@ class SolveReactor final : public grpc::ServerWriteReactor<v1::SolvedFrame> {
  public:
   SolveReactor(grpc::CallbackServerContext* call, ServiceContext& context, const v1::SolveRequest* request)
       : call_(call), context_(context), request_(request) {
-    if (!context_.pool.TrySubmit([this] { Run(); })) Finish(kQueueFull);
+    if (!context_.pool.TrySubmit([this] { Run(); })) Done(kQueueFull);
   }
 
   void OnWriteDone(bool ok) override {
@@ -115,18 +138,22 @@ class SolveReactor final : public grpc::ServerWriteReactor<v1::SolvedFrame> {
   void OnDone() override { delete this; }
 
  private:
+  void Done(const grpc::Status& status) {
+    context_.metrics.CountRequest("Solve", CodeName(status.error_code()));
+    Finish(status);
+  }
   // On a pool worker. Finish is the last thing it does: OnDone (and delete) may follow at once.
   void Run() {
     const auto entry = context_.store.Get(request_->character_id());
     if (!entry) {
-      Finish(NotFound(request_->character_id()));
+      Done(NotFound(request_->character_id()));
       return;
     }
     SolveJob job;
     try {
       job = ToSolveJob(*request_, *entry->rig, context_.limits);
     } catch (const std::exception& e) {
-      Finish(ToStatus(e));
+      Done(ToStatus(e));
       return;
     }
     try {
@@ -135,11 +162,12 @@ class SolveReactor final : public grpc::ServerWriteReactor<v1::SolvedFrame> {
       Points positions;
       for (size_t i = 0; i < job.frames.size(); ++i) {
         if (Stopped()) {
-          Finish(Expired() ? grpc::Status(grpc::StatusCode::DEADLINE_EXCEEDED, fmt::format("deadline passed after {} of {} frames", i, job.frames.size()))
+          Done(Expired() ? grpc::Status(grpc::StatusCode::DEADLINE_EXCEEDED, fmt::format("deadline passed after {} of {} frames", i, job.frames.size()))
                            : grpc::Status(grpc::StatusCode::CANCELLED, "the client cancelled the stream"));
           return;
         }
         const SolveSummary summary = solver.Solve(job.frames[i], &positions);
+        context_.metrics.CountFrame(summary.solve_ms / 1000.0, summary.newton_iterations, summary.converged());
         frame_ = ToProto(static_cast<int>(i), positions, entry->rig->rest().faces, summary, job.with_normals,
                          context_.replica_name);
         {
@@ -155,10 +183,10 @@ class SolveReactor final : public grpc::ServerWriteReactor<v1::SolvedFrame> {
         }
       }
     } catch (const std::exception& e) {
-      Finish(ToStatus(e));
+      Done(ToStatus(e));
       return;
     }
-    Finish(grpc::Status::OK);
+    Done(grpc::Status::OK);
   }
 
   bool Expired() const { return std::chrono::system_clock::now() > call_->deadline(); }
@@ -241,6 +269,7 @@ class InteractiveReactor final : public grpc::ServerBidiReactor<v1::InteractiveR
   void FinishLocked(std::unique_lock<std::mutex>&, const grpc::Status& status) {
     if (finished_) return;
     finished_ = true;
+    context_.metrics.CountRequest("Interactive", CodeName(status.error_code()));
     Finish(status);
   }
   void FinishIfIdle(std::unique_lock<std::mutex>& lock, const grpc::Status& status) {
@@ -270,6 +299,7 @@ class InteractiveReactor final : public grpc::ServerBidiReactor<v1::InteractiveR
         Frame frame = ToFrame(request);
         Points positions;
         const SolveSummary summary = solver_->Solve(frame, &positions);
+        context_.metrics.CountFrame(summary.solve_ms / 1000.0, summary.newton_iterations, summary.converged());
         out_ = ToProto(static_cast<int>(index), positions, entry_->rig->rest().faces, summary, job_.with_normals,
                        context_.replica_name);
       } catch (const std::exception& e) {
@@ -348,7 +378,7 @@ grpc::ServerReadReactor<v1::UploadChunk>* CharacterServiceImpl::UploadCharacter(
 grpc::ServerUnaryReactor* CharacterServiceImpl::GetCharacter(grpc::CallbackServerContext* call,
                                                              const v1::GetCharacterRequest* request,
                                                              v1::Character* response) {
-  return OnPool(call, context_.pool, [this, request, response]() -> grpc::Status {
+  return OnPool(call, context_, "GetCharacter", [this, request, response]() -> grpc::Status {
     const auto entry = context_.store.Get(request->id());
     if (!entry) return NotFound(request->id());
     *response = ToProto(*entry, true);
@@ -364,7 +394,7 @@ grpc::ServerUnaryReactor* CharacterServiceImpl::GetCharacter(grpc::CallbackServe
 grpc::ServerUnaryReactor* CharacterServiceImpl::ListCharacters(grpc::CallbackServerContext* call,
                                                                const v1::ListCharactersRequest*,
                                                                v1::ListCharactersResponse* response) {
-  return OnPool(call, context_.pool, [this, response]() -> grpc::Status {
+  return OnPool(call, context_, "ListCharacters", [this, response]() -> grpc::Status {
     for (const auto& entry : context_.store.List()) *response->add_characters() = ToProto(*entry, true);
     return grpc::Status::OK;
   });
@@ -373,7 +403,7 @@ grpc::ServerUnaryReactor* CharacterServiceImpl::ListCharacters(grpc::CallbackSer
 grpc::ServerUnaryReactor* CharacterServiceImpl::DeleteCharacter(grpc::CallbackServerContext* call,
                                                                 const v1::DeleteCharacterRequest* request,
                                                                 v1::DeleteCharacterResponse*) {
-  return OnPool(call, context_.pool, [this, request]() -> grpc::Status {
+  return OnPool(call, context_, "DeleteCharacter", [this, request]() -> grpc::Status {
     if (!context_.store.Delete(request->id())) return NotFound(request->id());
     spdlog::info("deleted {}", request->id().substr(0, 12));
     return grpc::Status::OK;

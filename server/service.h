@@ -7,6 +7,7 @@
 
 #include "character_store.h"
 #include "convert.h"
+#include "metrics.h"
 #include "solver_pool.h"
 #include "springblend/v1/springblend.grpc.pb.h"
 
@@ -17,6 +18,7 @@ struct ServiceContext {
   SolverPool& pool;
   Limits limits;
   std::string replica_name;  // reported in every frame's served_by
+  Metrics& metrics;
 };
 
 class CharacterServiceImpl final : public v1::CharacterService::CallbackService {

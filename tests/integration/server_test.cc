@@ -3,7 +3,10 @@
 #include <gmock/gmock.h>
 #include <gtest/gtest.h>
 #include <grpcpp/grpcpp.h>
+#include <arpa/inet.h>
+#include <netinet/in.h>
 #include <signal.h>
+#include <sys/socket.h>
 #include <sys/wait.h>
 #include <unistd.h>
 
@@ -42,16 +45,22 @@ class ServerProcess {
       _exit(127);
     }
     close(out[1]);
-    // The first line says where it listens: "springblend-server listening on 127.0.0.1:PORT".
-    std::string line;
-    char c;
-    while (read(out[0], &c, 1) == 1 && c != '\n') line += c;
-    close(out[0]);
-    const auto colon = line.rfind(':');
-    if (line.find("listening on") != std::string::npos && colon != std::string::npos) {
-      address_ = "127.0.0.1:" + line.substr(colon + 1);
+    // Lines until "springblend-server listening on 127.0.0.1:PORT" (after "... metrics on http://...").
+    for (int lines = 0; lines < 4 && address_.empty(); ++lines) {
+      std::string line;
+      char c;
+      while (read(out[0], &c, 1) == 1 && c != '\n') line += c;
+      const auto colon = line.rfind(':');
+      if (colon == std::string::npos) break;
+      if (line.find("metrics on") != std::string::npos) {
+        metrics_port_ = std::stoi(line.substr(colon + 1));
+      } else if (line.find("listening on") != std::string::npos) {
+        address_ = "127.0.0.1:" + line.substr(colon + 1);
+      }
     }
+    close(out[0]);
   }
+  int metrics_port() const { return metrics_port_; }
   ~ServerProcess() { Stop(); }
   int Stop() {
     if (pid_ <= 0) return -1;
@@ -66,7 +75,27 @@ class ServerProcess {
  private:
   pid_t pid_ = -1;
   std::string address_;
+  int metrics_port_ = 0;
 };
+
+// GET a path from 127.0.0.1:port; returns the whole response.
+std::string HttpGet(int port, const std::string& path) {
+  const int fd = socket(AF_INET, SOCK_STREAM, 0);
+  sockaddr_in address{};
+  address.sin_family = AF_INET;
+  address.sin_port = htons(static_cast<std::uint16_t>(port));
+  inet_pton(AF_INET, "127.0.0.1", &address.sin_addr);
+  std::string response;
+  if (connect(fd, reinterpret_cast<sockaddr*>(&address), sizeof(address)) == 0) {
+    const std::string request = "GET " + path + " HTTP/1.0\r\n\r\n";
+    send(fd, request.data(), request.size(), 0);
+    char buffer[4096];
+    ssize_t n;
+    while ((n = recv(fd, buffer, sizeof(buffer), 0)) > 0) response.append(buffer, static_cast<size_t>(n));
+  }
+  close(fd);
+  return response;
+}
 
 struct CylinderRig {
   TriangleMesh rest = LoadMesh(DataPath("cylinder/cylinder.obj"));
@@ -344,6 +373,36 @@ TEST_F(ServerTest, AnInteractiveSessionRefusesAnUnknownCharacter) {
     EXPECT_EQ(e.code(), grpc::StatusCode::NOT_FOUND);
   }
   EXPECT_TRUE(client_->Healthy());
+}
+
+}  // namespace
+}  // namespace springblend
+
+namespace springblend {
+namespace {
+
+TEST(ServerMetrics, ThePrometheusPageShowsTheCountersMoving) {
+  TempDir cache;
+  ServerProcess server(cache.path().string(), {"--metrics", "127.0.0.1:0"});
+  ASSERT_GT(server.metrics_port(), 0);
+  Client client({server.address()});
+  const std::string before = HttpGet(server.metrics_port(), "/metrics");
+  EXPECT_THAT(before, HasSubstr("springblend_frames_solved_total 0"));
+  CylinderRig cylinder;
+  const v1::Character c = client.Upload(cylinder.rest, cylinder.targets);
+  client.Upload(cylinder.rest, cylinder.targets);
+  client.Solve(SweepRequest(c.id(), 4, {0.5, 0.5}), [](const v1::SolvedFrame&) {});
+  EXPECT_EQ(StatusOf([&] { client.Get(std::string(64, 'c')); }), grpc::StatusCode::NOT_FOUND);
+  const std::string after = HttpGet(server.metrics_port(), "/metrics");
+  EXPECT_THAT(after, HasSubstr("HTTP/1.0 200 OK"));
+  EXPECT_THAT(after, HasSubstr("springblend_frames_solved_total 4"));
+  EXPECT_THAT(after, HasSubstr("springblend_requests_total{method=\"Solve\",code=\"OK\"} 1"));
+  EXPECT_THAT(after, HasSubstr("springblend_requests_total{method=\"UploadCharacter\",code=\"OK\"} 2"));
+  EXPECT_THAT(after, HasSubstr("springblend_requests_total{method=\"GetCharacter\",code=\"NOT_FOUND\"} 1"));
+  EXPECT_THAT(after, HasSubstr("springblend_solve_seconds_count 4"));
+  EXPECT_THAT(after, HasSubstr("springblend_cache_characters 1"));
+  EXPECT_THAT(after, ::testing::ContainsRegex("springblend_cache_hits_total [1-9]"));
+  EXPECT_THAT(HttpGet(server.metrics_port(), "/elsewhere"), HasSubstr("404"));
 }
 
 }  // namespace

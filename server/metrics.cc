@@ -1,0 +1,133 @@
+#include "metrics.h"
+
+#include <arpa/inet.h>
+#include <netinet/in.h>
+#include <sys/socket.h>
+#include <unistd.h>
+
+#include <cerrno>
+#include <cstring>
+#include <fmt/format.h>
+
+#include "springblend/error.h"
+
+namespace springblend::server {
+
+void Histogram::Observe(double value) {
+  size_t bucket = 0;
+  while (bucket < kBounds.size() && value > kBounds[bucket]) ++bucket;
+  buckets_[bucket].fetch_add(1, std::memory_order_relaxed);
+  count_.fetch_add(1, std::memory_order_relaxed);
+  double sum = sum_.load(std::memory_order_relaxed);
+  while (!sum_.compare_exchange_weak(sum, sum + value, std::memory_order_relaxed)) {
+  }
+}
+
+std::string Histogram::Render(const std::string& name, const std::string& help, double scale) const {
+  std::string out = fmt::format("# HELP {} {}\n# TYPE {} histogram\n", name, help, name);
+  std::uint64_t cumulative = 0;
+  for (size_t b = 0; b < kBounds.size(); ++b) {
+    cumulative += buckets_[b].load(std::memory_order_relaxed);
+    out += fmt::format("{}_bucket{{le=\"{}\"}} {}\n", name, kBounds[b] * scale, cumulative);
+  }
+  cumulative += buckets_[kBounds.size()].load(std::memory_order_relaxed);
+  out += fmt::format("{}_bucket{{le=\"+Inf\"}} {}\n{}_sum {}\n{}_count {}\n", name, cumulative, name,
+                     sum_.load(std::memory_order_relaxed), name, count_.load(std::memory_order_relaxed));
+  return out;
+}
+
+void Metrics::CountRequest(const std::string& method, const std::string& code) {
+  std::lock_guard lock(mutex_);
+  ++requests_[{method, code}];
+}
+
+void Metrics::CountFrame(double solve_seconds, int newton_iterations, bool converged) {
+  frames_.fetch_add(1, std::memory_order_relaxed);
+  if (!converged) unconverged_frames_.fetch_add(1, std::memory_order_relaxed);
+  newton_iterations_.fetch_add(static_cast<std::uint64_t>(newton_iterations), std::memory_order_relaxed);
+  solve_seconds_.Observe(solve_seconds);
+}
+
+std::string Metrics::Render(const std::function<std::string()>& extra) const {
+  std::string out = "# HELP springblend_requests_total gRPC calls by method and status code.\n"
+                    "# TYPE springblend_requests_total counter\n";
+  {
+    std::lock_guard lock(mutex_);
+    for (const auto& [key, count] : requests_) {
+      out += fmt::format("springblend_requests_total{{method=\"{}\",code=\"{}\"}} {}\n", key.first, key.second, count);
+    }
+  }
+  out += fmt::format(
+      "# HELP springblend_frames_solved_total Frames solved.\n# TYPE springblend_frames_solved_total counter\n"
+      "springblend_frames_solved_total {}\n"
+      "# HELP springblend_frames_unconverged_total Frames that ended without converging.\n"
+      "# TYPE springblend_frames_unconverged_total counter\nspringblend_frames_unconverged_total {}\n"
+      "# HELP springblend_newton_iterations_total Newton iterations over all frames.\n"
+      "# TYPE springblend_newton_iterations_total counter\nspringblend_newton_iterations_total {}\n",
+      frames_.load(), unconverged_frames_.load(), newton_iterations_.load());
+  out += solve_seconds_.Render("springblend_solve_seconds", "Time to solve one frame.");
+  if (extra) out += extra();
+  return out;
+}
+
+MetricsEndpoint::MetricsEndpoint(const std::string& listen, std::function<std::string()> render)
+    : render_(std::move(render)) {
+  const auto colon = listen.rfind(':');
+  sockaddr_in address{};
+  address.sin_family = AF_INET;
+  if (colon == std::string::npos || inet_pton(AF_INET, listen.substr(0, colon).c_str(), &address.sin_addr) != 1) {
+    throw Error(ErrorCode::kInvalidInput, "--metrics " + listen + ": expected IPV4_ADDRESS:PORT");
+  }
+  address.sin_port = htons(static_cast<std::uint16_t>(std::stoi(listen.substr(colon + 1))));
+  socket_ = ::socket(AF_INET, SOCK_STREAM | SOCK_CLOEXEC, 0);
+  const int one = 1;
+  setsockopt(socket_, SOL_SOCKET, SO_REUSEADDR, &one, sizeof(one));
+  if (socket_ < 0 || ::bind(socket_, reinterpret_cast<sockaddr*>(&address), sizeof(address)) != 0 ||
+      ::listen(socket_, 16) != 0) {
+    if (socket_ >= 0) ::close(socket_);
+    throw Error(ErrorCode::kInvalidInput, "cannot serve metrics on " + listen + ": " + std::strerror(errno));
+  }
+  socklen_t length = sizeof(address);
+  getsockname(socket_, reinterpret_cast<sockaddr*>(&address), &length);
+  port_ = ntohs(address.sin_port);
+  thread_ = std::thread([this] { Serve(); });
+}
+
+MetricsEndpoint::~MetricsEndpoint() {
+  stopping_ = true;
+  ::shutdown(socket_, SHUT_RDWR);  // wakes accept()
+  ::close(socket_);
+  if (thread_.joinable()) thread_.join();
+}
+
+void MetricsEndpoint::Serve() {
+  while (!stopping_) {
+    const int client = ::accept4(socket_, nullptr, nullptr, SOCK_CLOEXEC);
+    if (client < 0) {
+      if (stopping_) return;
+      continue;
+    }
+    timeval timeout{2, 0};  // a scraper that sends nothing is dropped
+    setsockopt(client, SOL_SOCKET, SO_RCVTIMEO, &timeout, sizeof(timeout));
+    char request[1024];
+    const ssize_t n = ::recv(client, request, sizeof(request) - 1, 0);
+    std::string response;
+    if (n > 0 && std::string(request, static_cast<size_t>(n)).rfind("GET /metrics", 0) == 0) {
+      const std::string body = render_();
+      response = fmt::format("HTTP/1.0 200 OK\r\nContent-Type: text/plain; version=0.0.4; charset=utf-8\r\n"
+                             "Content-Length: {}\r\nConnection: close\r\n\r\n{}",
+                             body.size(), body);
+    } else {
+      response = "HTTP/1.0 404 Not Found\r\nContent-Length: 0\r\nConnection: close\r\n\r\n";
+    }
+    size_t sent = 0;
+    while (sent < response.size()) {
+      const ssize_t m = ::send(client, response.data() + sent, response.size() - sent, MSG_NOSIGNAL);
+      if (m <= 0) break;
+      sent += static_cast<size_t>(m);
+    }
+    ::close(client);
+  }
+}
+
+}  // namespace springblend::server
