@@ -57,6 +57,37 @@ grpc::Status NotFound(const std::string& id) {
           "no character with id '" + id + "' on this server or in its cache directory; upload it first"};
 }
 
+// The hand-over between a pool job that produces frames and gRPC, which sends them: one write in flight per
+// stream, and the job waits until it is sent (or the stream is cancelled) before it goes on.
+struct WriteGate {
+  std::mutex mutex;
+  std::condition_variable wake;
+  bool writing = false;
+  bool cancelled = false;
+
+  void WriteDone(bool ok) {
+    std::lock_guard lock(mutex);
+    writing = false;
+    if (!ok) cancelled = true;
+    wake.notify_all();
+  }
+  void Cancel() {
+    std::lock_guard lock(mutex);
+    cancelled = true;
+    wake.notify_all();
+  }
+  // With `lock` on mutex: marks a write in flight, lets `start` begin it unlocked, and waits until gRPC has
+  // completed it (gRPC completes every started write, also on cancellation).
+  template <typename Start>
+  void Write(std::unique_lock<std::mutex>& lock, Start start) {
+    writing = true;
+    lock.unlock();
+    start();
+    lock.lock();
+    wake.wait(lock, [this] { return !writing; });
+  }
+};
+
 class UploadReactor final : public grpc::ServerReadReactor<v1::UploadChunk> {
  public:
   UploadReactor(grpc::CallbackServerContext* call, ServiceContext& context, v1::Character* response)
@@ -124,17 +155,8 @@ class SolveReactor final : public grpc::ServerWriteReactor<v1::SolvedFrame> {
     if (!context_.pool.TrySubmit([this] { Run(); })) Done(kQueueFull);
   }
 
-  void OnWriteDone(bool ok) override {
-    std::lock_guard lock(mutex_);
-    writing_ = false;
-    if (!ok) cancelled_ = true;
-    wake_.notify_all();
-  }
-  void OnCancel() override {
-    std::lock_guard lock(mutex_);
-    cancelled_ = true;
-    wake_.notify_all();
-  }
+  void OnWriteDone(bool ok) override { gate_.WriteDone(ok); }
+  void OnCancel() override { gate_.Cancel(); }
   void OnDone() override { delete this; }
 
  private:
@@ -170,17 +192,8 @@ class SolveReactor final : public grpc::ServerWriteReactor<v1::SolvedFrame> {
         context_.metrics.CountFrame(summary.solve_ms / 1000.0, summary.newton_iterations, summary.converged());
         frame_ = ToProto(static_cast<int>(i), positions, entry->rig->rest().faces, summary, job.with_normals,
                          context_.replica_name);
-        {
-          std::unique_lock lock(mutex_);
-          writing_ = true;
-        }
-        StartWrite(&frame_);
-        std::unique_lock lock(mutex_);
-        wake_.wait(lock, [this] { return !writing_ || cancelled_; });
-        if (writing_) {
-          // Cancelled mid-write: gRPC still completes the write (OnWriteDone) before OnDone; wait for it.
-          wake_.wait(lock, [this] { return !writing_; });
-        }
+        std::unique_lock lock(gate_.mutex);
+        gate_.Write(lock, [this] { StartWrite(&frame_); });
       }
     } catch (const std::exception& e) {
       Done(ToStatus(e));
@@ -191,18 +204,15 @@ class SolveReactor final : public grpc::ServerWriteReactor<v1::SolvedFrame> {
 
   bool Expired() const { return std::chrono::system_clock::now() > call_->deadline(); }
   bool Stopped() {
-    std::lock_guard lock(mutex_);
-    return cancelled_ || Expired();
+    std::lock_guard lock(gate_.mutex);
+    return gate_.cancelled || Expired();
   }
 
   grpc::CallbackServerContext* call_;
   ServiceContext& context_;
   const v1::SolveRequest* request_;
   v1::SolvedFrame frame_;
-  std::mutex mutex_;
-  std::condition_variable wake_;
-  bool writing_ = false;
-  bool cancelled_ = false;
+  WriteGate gate_;
 };
 
 // An interactive session. Frames arrive on gRPC threads and only replace the pending one; a pool job solves
@@ -250,16 +260,11 @@ class InteractiveReactor final : public grpc::ServerBidiReactor<v1::InteractiveR
     StartRead(&incoming_);
   }
 
-  void OnWriteDone(bool ok) override {
-    std::lock_guard lock(mutex_);
-    writing_ = false;
-    if (!ok) cancelled_ = true;
-    wake_.notify_all();
-  }
+  void OnWriteDone(bool ok) override { gate_.WriteDone(ok); }
   void OnCancel() override {
     std::unique_lock lock(mutex_);
-    cancelled_ = true;
-    wake_.notify_all();
+    gate_.cancelled = true;
+    gate_.wake.notify_all();
     FinishIfIdle(lock, {grpc::StatusCode::CANCELLED, "the client cancelled the session"});
   }
   void OnDone() override { delete this; }
@@ -289,7 +294,7 @@ class InteractiveReactor final : public grpc::ServerBidiReactor<v1::InteractiveR
         return;
       }
     }
-    while (pending_ && !cancelled_) {
+    while (pending_ && !gate_.cancelled) {
       const v1::FrameRequest request = std::move(*pending_);
       const std::uint32_t index = pending_index_;
       pending_.reset();
@@ -312,14 +317,10 @@ class InteractiveReactor final : public grpc::ServerBidiReactor<v1::InteractiveR
         FinishLocked(lock, status);
         return;
       }
-      writing_ = true;
-      lock.unlock();
-      StartWrite(&out_);
-      lock.lock();
-      wake_.wait(lock, [this] { return !writing_; });
+      gate_.Write(lock, [this] { StartWrite(&out_); });
     }
     job_running_ = false;
-    if (cancelled_) {
+    if (gate_.cancelled) {
       pending_.reset();
       FinishLocked(lock, {grpc::StatusCode::CANCELLED, "the client cancelled the session"});
     } else if (reads_done_) {
@@ -362,10 +363,9 @@ class InteractiveReactor final : public grpc::ServerBidiReactor<v1::InteractiveR
   v1::SolvedFrame out_;
   std::optional<v1::FrameRequest> pending_;
   std::uint32_t pending_index_ = 0, received_ = 0, dropped_ = 0;
-  std::mutex mutex_;
-  std::condition_variable wake_;
-  bool started_ = false, setup_requested_ = false, job_running_ = false, writing_ = false, reads_done_ = false, cancelled_ = false,
-       finished_ = false;
+  WriteGate gate_;
+  std::mutex& mutex_ = gate_.mutex;  // one lock guards the session's state and its writes
+  bool started_ = false, setup_requested_ = false, job_running_ = false, reads_done_ = false, finished_ = false;
 };
 
 }  // namespace
