@@ -223,6 +223,9 @@ class Solver::Impl {
   internal::FactorStatus Factorize();
   void SolveLinear(const Eigen::VectorXd& rhs, Eigen::VectorXd* x);
   void ChooseLinearSystem();
+  std::vector<std::pair<int, Eigen::Vector3d>> HeldVertices(const Frame& frame, const Points& linear,
+                                                            std::optional<internal::AnchorMotion>* motion) const;
+  void PlaceStart(const Points& linear, const std::optional<internal::AnchorMotion>& motion);
   // Newton's method from x_ with the held coordinates fixed_dof_; adds to the summary's counters.
   void Newton(SolveSummary& summary);
   // One round of the contact active set; returns whether the set changed.
@@ -630,6 +633,45 @@ void Solver::Impl::Newton(SolveSummary& summary) {
   summary.energy = energy;
 }
 
+std::vector<std::pair<int, Eigen::Vector3d>> Solver::Impl::HeldVertices(
+    const Frame& frame, const Points& linear, std::optional<internal::AnchorMotion>* motion) const {
+  // Boundary conditions of this frame: fixed vertices follow the linear blend, the anchor its blended
+  // rigid motion, pins their positions.
+  const Rig& rig = *rig_;
+  std::vector<std::pair<int, Eigen::Vector3d>> held;
+  for (int v : rig.fixed_vertices()) held.emplace_back(v, linear.row(v).transpose());
+  if (rig.boundary_mode() == BoundaryMode::kAnchored) {
+    *motion = internal::BlendAnchorMotions(rig.anchor_motions(), frame.weights);
+    for (int v : rig.anchor_vertices()) {
+      held.emplace_back(v, (*motion)->Apply(rig.shape(0).row(v).transpose(), rig.anchor_centroid()));
+    }
+  }
+  for (const Pin& pin : frame.pins) held.emplace_back(pin.vertex, pin.position);
+  return held;
+}
+
+void Solver::Impl::PlaceStart(const Points& linear, const std::optional<internal::AnchorMotion>& motion) {
+  // The previous frame's equilibrium (warm start; carried along with the anchor's motion since then) or
+  // the linear blendshape.
+  const Rig& rig = *rig_;
+  const int n = rig.num_vertices();
+  x_.resize(3 * n);
+  if (options_.warm_start && has_previous_) {
+    for (int v = 0; v < n; ++v) x_.segment<3>(3 * v) = previous_.row(v).transpose();
+    if (motion && previous_motion_) {
+      // x -> M_now(M_before^-1(x)), both about the anchor's rest centroid.
+      const Eigen::Vector3d& c = rig.anchor_centroid();
+      const Eigen::Quaterniond relative = motion->rotation * previous_motion_->rotation.inverse();
+      for (int v = 0; v < n; ++v) {
+        const Eigen::Vector3d local = x_.segment<3>(3 * v) - c - previous_motion_->offset;
+        x_.segment<3>(3 * v) = relative * local + c + motion->offset;
+      }
+    }
+  } else {
+    for (int v = 0; v < n; ++v) x_.segment<3>(3 * v) = linear.row(v).transpose();
+  }
+}
+
 SolveSummary Solver::Impl::Solve(const Frame& frame, Points* positions) {
   const auto start = std::chrono::steady_clock::now();
   const Rig& rig = *rig_;
@@ -648,19 +690,8 @@ SolveSummary Solver::Impl::Solve(const Frame& frame, Points* positions) {
   }
   PrepareFrame(frame.weights);
 
-  // Boundary conditions of this frame: fixed vertices follow the linear blend, the anchor its blended
-  // rigid motion, pins their positions.
-  std::fill(fixed_dof_.begin(), fixed_dof_.end(), 0);
-  std::vector<std::pair<int, Eigen::Vector3d>> held;
-  for (int v : rig.fixed_vertices()) held.emplace_back(v, linear.row(v).transpose());
   std::optional<internal::AnchorMotion> motion;
-  if (rig.boundary_mode() == BoundaryMode::kAnchored) {
-    motion = internal::BlendAnchorMotions(rig.anchor_motions(), frame.weights);
-    for (int v : rig.anchor_vertices()) {
-      held.emplace_back(v, motion->Apply(rig.shape(0).row(v).transpose(), rig.anchor_centroid()));
-    }
-  }
-  for (const Pin& pin : frame.pins) held.emplace_back(pin.vertex, pin.position);
+  const auto held = HeldVertices(frame, linear, &motion);
   std::vector<Eigen::Vector3d> held_points;
   for (const auto& h : held) held_points.push_back(h.second);
   BoundaryMode mode = rig.boundary_mode();
@@ -669,24 +700,8 @@ SolveSummary Solver::Impl::Solve(const Frame& frame, Points* positions) {
            : held.empty()                      ? BoundaryMode::kFloating
                                                : BoundaryMode::kPartiallyFixed;
   }
-
-  // Start: the previous frame's equilibrium (warm start; carried along with the anchor's motion since
-  // then) or the linear blendshape; then the held vertices go to their positions.
-  x_.resize(3 * n);
-  if (options_.warm_start && has_previous_) {
-    for (int v = 0; v < n; ++v) x_.segment<3>(3 * v) = previous_.row(v).transpose();
-    if (motion && previous_motion_) {
-      // x -> M_now(M_before^-1(x)), both about the anchor's rest centroid.
-      const Eigen::Vector3d& c = rig.anchor_centroid();
-      const Eigen::Quaterniond relative = motion->rotation * previous_motion_->rotation.inverse();
-      for (int v = 0; v < n; ++v) {
-        const Eigen::Vector3d local = x_.segment<3>(3 * v) - c - previous_motion_->offset;
-        x_.segment<3>(3 * v) = relative * local + c + motion->offset;
-      }
-    }
-  } else {
-    for (int v = 0; v < n; ++v) x_.segment<3>(3 * v) = linear.row(v).transpose();
-  }
+  PlaceStart(linear, motion);
+  std::fill(fixed_dof_.begin(), fixed_dof_.end(), 0);
   for (const auto& [v, p] : held) {
     x_.segment<3>(3 * v) = p;
     fixed_dof_[3 * v] = fixed_dof_[3 * v + 1] = fixed_dof_[3 * v + 2] = 1;
@@ -710,7 +725,6 @@ SolveSummary Solver::Impl::Solve(const Frame& frame, Points* positions) {
   } else if (mode == BoundaryMode::kPartiallyFixed) {
     diagonal_shift_ = 1e-8 / rig.summary().mean_rest_length;
   }
-
 
   base_fixed_dof_ = fixed_dof_;
   contacts_.clear();
