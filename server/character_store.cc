@@ -9,6 +9,7 @@
 #include <fmt/format.h>
 #include <fstream>
 #include <sstream>
+#include <unordered_set>
 #include <thread>
 
 #include "springblend/error.h"
@@ -289,17 +290,32 @@ std::shared_ptr<const CharacterStore::Entry> CharacterStore::Get(const std::stri
   return entries_.count(id) ? entries_[id].entry : entry;
 }
 
-std::vector<std::shared_ptr<const CharacterStore::Entry>> CharacterStore::List() {
-  if (!options_.directory.empty()) {
-    std::error_code ec;
-    for (const auto& file : std::filesystem::directory_iterator(options_.directory, ec)) {
-      const std::string stem = file.path().stem().string();
-      if (file.path().extension() == ".sbchar" && ValidId(stem)) Get(stem);
+std::vector<CharacterStore::Listed> CharacterStore::List() {
+  std::vector<Listed> out;
+  std::unordered_set<std::string> seen;
+  {
+    std::lock_guard lock(mutex_);
+    for (const auto& id : lru_) {
+      const auto& entry = entries_[id].entry;
+      out.push_back({id, entry->name, entry});
+      seen.insert(id);
     }
   }
-  std::lock_guard lock(mutex_);
-  std::vector<std::shared_ptr<const Entry>> out;
-  for (const auto& id : lru_) out.push_back(entries_[id].entry);
+  if (options_.directory.empty()) return out;
+  std::error_code ec;
+  for (const auto& file : std::filesystem::directory_iterator(options_.directory, ec)) {
+    const std::string id = file.path().stem().string();
+    if (file.path().extension() != ".sbchar" || !ValidId(id) || seen.count(id) != 0) continue;
+    // The name is the payload's first field: read just the header, not the meshes.
+    std::ifstream in(file.path(), std::ios::binary);
+    char header[sizeof(kFileMagic) + 32 + 4];
+    if (!in.read(header, sizeof(header)) || std::memcmp(header, kFileMagic, sizeof(kFileMagic)) != 0) continue;
+    std::uint32_t length = 0;
+    std::memcpy(&length, header + sizeof(kFileMagic) + 32, 4);
+    std::string name(std::min<std::uint32_t>(length, 256), '\0');
+    in.read(name.data(), static_cast<std::streamsize>(name.size()));
+    out.push_back({id, name, nullptr});
+  }
   return out;
 }
 

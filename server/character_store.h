@@ -55,7 +55,13 @@ class CharacterStore {
   std::pair<std::shared_ptr<const Entry>, bool> Put(const CharacterData& data);
   // From memory, else from the directory (rebuilding the rig); nullptr if unknown anywhere.
   std::shared_ptr<const Entry> Get(const std::string& id);
-  std::vector<std::shared_ptr<const Entry>> List();
+  // Built characters in memory, most recently used first, then those only in the cache directory (listed by
+  // id and name without building them: `entry` is null).
+  struct Listed {
+    std::string id, name;
+    std::shared_ptr<const Entry> entry;
+  };
+  std::vector<Listed> List();
   bool Delete(const std::string& id);
   StoreStats stats() const;
 

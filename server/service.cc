@@ -395,7 +395,16 @@ grpc::ServerUnaryReactor* CharacterServiceImpl::ListCharacters(grpc::CallbackSer
                                                                const v1::ListCharactersRequest*,
                                                                v1::ListCharactersResponse* response) {
   return OnPool(call, context_, "ListCharacters", [this, response]() -> grpc::Status {
-    for (const auto& entry : context_.store.List()) *response->add_characters() = ToProto(*entry, true);
+    for (const auto& listed : context_.store.List()) {
+      v1::Character* c = response->add_characters();
+      if (listed.entry) {
+        *c = ToProto(*listed.entry, true);
+        c->clear_cache_hit();
+      } else {  // in the cache directory, not built yet: GetCharacter builds it
+        c->set_id(listed.id);
+        c->set_name(listed.name);
+      }
+    }
     return grpc::Status::OK;
   });
 }

@@ -183,6 +183,9 @@ TEST_F(ServerTest, ARestartServesKnownCharactersFromTheCacheDirectory) {
   EXPECT_EQ(server_->Stop(), 0);  // SIGTERM drains and exits cleanly
   server_ = std::make_unique<ServerProcess>(cache_.path().string());
   Client fresh({server_->address()});
+  const auto listed = fresh.List();  // known from the directory, not built yet
+  ASSERT_EQ(listed.size(), 1u);
+  EXPECT_EQ(listed[0].id(), c.id());
   const v1::Character again = fresh.Get(c.id());
   EXPECT_EQ(again.id(), c.id());
   EXPECT_EQ(again.summary().springs(), c.summary().springs());
