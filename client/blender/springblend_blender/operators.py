@@ -1,0 +1,148 @@
+"""The add-on's operators: check the server, upload the active mesh, bake a frame range. Every failure becomes
+a Blender report (the server's message included), never a traceback."""
+
+import time
+
+import bpy
+
+from . import connection, scene_data, store
+from .scene_data import UserError
+
+
+class _Guarded:
+    """Runs an operator's work and turns any failure into an ERROR report and CANCELLED."""
+
+    def execute(self, context):
+        try:
+            return self.run(context)
+        except UserError as error:
+            self.report({"ERROR"}, f"springblend: {error}")
+        except Exception as error:  # noqa: BLE001 - shown to the artist instead of a traceback
+            springblend = _loaded_client()
+            if springblend is not None and isinstance(error, springblend.SpringblendError):
+                self.report({"ERROR"}, f"springblend server {context.scene.springblend.server}: "
+                                       f"{error.code.name}: {error.message}")
+            else:
+                self.report({"ERROR"}, f"springblend: unexpected {type(error).__name__}: {error}")
+        return {"CANCELLED"}
+
+
+def _loaded_client():
+    try:
+        return connection.client_module()
+    except UserError:
+        return None
+
+
+class SPRINGBLEND_OT_check_server(_Guarded, bpy.types.Operator):
+    """Ask the springblend server's health service whether it is serving"""
+    bl_idname = "springblend.check_server"
+    bl_label = "Check Server"
+
+    def run(self, context):
+        with connection.connect(context.scene) as client:
+            if not client.healthy():
+                raise UserError(f"no springblend server is serving at {client.address}")
+        self.report({"INFO"}, f"springblend server {context.scene.springblend.server} is serving")
+        return {"FINISHED"}
+
+
+class SPRINGBLEND_OT_upload(_Guarded, bpy.types.Operator):
+    """Upload the active mesh (its Basis) with its shape keys as the character's targets"""
+    bl_idname = "springblend.upload"
+    bl_label = "Upload Character"
+    bl_options = {"REGISTER", "UNDO"}
+
+    @classmethod
+    def poll(cls, context):
+        return context.active_object is not None and context.active_object.type == "MESH"
+
+    def run(self, context):
+        obj = context.active_object
+        rest, faces, targets = scene_data.character_arrays(obj)
+        with connection.connect(context.scene) as client:
+            character = client.upload(rest, faces, targets, name=obj.name)
+        obj.springblend_character = character.id
+        how = "already on the server" if character.cache_hit else \
+            f"rig built in {character.summary.precompute_ms:.0f} ms"
+        self.report({"INFO"}, f"springblend: uploaded '{obj.name}' ({len(rest)} vertices, {len(targets)} "
+                              f"targets) as {character.id[:12]}, {how}")
+        return {"FINISHED"}
+
+
+class SPRINGBLEND_OT_bake(_Guarded, bpy.types.Operator):
+    """Solve every frame of the range on the server and store the results as shape keys driven by the
+    timeline (one corrective key per frame)"""
+    bl_idname = "springblend.bake"
+    bl_label = "Bake Frames"
+    bl_options = {"REGISTER", "UNDO"}
+
+    @classmethod
+    def poll(cls, context):
+        return context.active_object is not None and context.active_object.type == "MESH"
+
+    def run(self, context):
+        scene, obj = context.scene, context.active_object
+        if not obj.springblend_character:
+            raise UserError(f"'{obj.name}' has not been uploaded: press Upload Character first")
+        first, last = scene.springblend.frame_range(scene)
+        if last < first:
+            raise UserError(f"the frame range {first}..{last} is empty")
+        scene_data.shape_keys(obj)
+        springblend = connection.client_module()
+        with connection.connect(scene) as client:
+            target_names = list(client.get(obj.springblend_character).target_names)
+            store.remove_bake(obj)
+            frames, request = self._read_frames(scene, obj, target_names, first, last, springblend)
+            rest = scene_data.key_positions(obj.data.shape_keys.reference_key)
+            targets = [scene_data.key_positions(obj.data.shape_keys.key_blocks[n]) for n in target_names]
+            if any(len(t) != len(rest) for t in targets) or len(rest) != len(obj.data.vertices):
+                raise UserError(f"'{obj.name}' changed its vertex count since the upload: upload again")
+            started = time.monotonic()
+            window_manager = context.window_manager
+            window_manager.progress_begin(0, len(frames))
+            unconverged = []
+            try:
+                for solved in client.solve_frames(obj.springblend_character, **request):
+                    frame = frames[solved.index]
+                    linear = scene_data.linear_blend(rest, targets, request["weights"][solved.index])
+                    store.store_frame(obj, frame, rest, linear, solved.positions)
+                    if not solved.summary.converged:
+                        unconverged.append(f"{frame} ({solved.summary.termination})")
+                    window_manager.progress_update(solved.index + 1)
+            finally:
+                window_manager.progress_end()
+        seconds = time.monotonic() - started
+        self.report({"INFO"}, f"springblend: baked frames {first}..{last} of '{obj.name}' ({len(frames)} frames, "
+                              f"{len(request['colliders'])} colliders) in {seconds:.1f} s")
+        if unconverged:
+            self.report({"WARNING"}, f"springblend: frames not converged: {', '.join(unconverged)}")
+        return {"FINISHED"}
+
+    @staticmethod
+    def _read_frames(scene, obj, target_names, first, last, springblend):
+        """Steps the timeline over the range and collects each frame's weights and collider motions."""
+        colliders = scene_data.collider_objects(scene.springblend.colliders)
+        frames = list(range(first, last + 1))
+        weights, motions, shapes = [], [], []
+        current = scene.frame_current
+        try:
+            for frame in frames:
+                scene.frame_set(frame)
+                if frame == first:
+                    shapes = [_collider_message(springblend, scene_data.collider_geometry(obj, c)) for c in colliders]
+                weights.append(scene_data.frame_weights(obj, target_names))
+                motions.append([scene_data.collider_motion(obj, c) for c in colliders])
+        finally:
+            scene.frame_set(current)
+        request = {"weights": weights, "colliders": shapes, "collider_transforms": motions if colliders else None}
+        return frames, request
+
+
+def _collider_message(springblend, geometry):
+    kind, a, b = geometry
+    return {"sphere": springblend.colliders.sphere, "box": springblend.colliders.box,
+            "mesh": springblend.colliders.mesh}[kind](a, b)
+
+
+CLASSES = [SPRINGBLEND_OT_check_server, SPRINGBLEND_OT_upload, SPRINGBLEND_OT_bake]

@@ -1,0 +1,69 @@
+"""The add-on's settings: preferences, per-scene settings (server, colliders, frame range) and per-object
+properties (the uploaded character's id, a collider's shape)."""
+
+import bpy
+
+
+class SpringblendPreferences(bpy.types.AddonPreferences):
+    """Where to find the springblend Python client when it is not bundled in the add-on."""
+    bl_idname = __package__
+
+    python_path: bpy.props.StringProperty(
+        name="Client package",
+        description="Directory holding the springblend Python package (e.g. build/release/python); not needed "
+                    "when the add-on was installed from springblend_blender.zip",
+        subtype="DIR_PATH")
+
+    def draw(self, context):
+        self.layout.prop(self, "python_path")
+
+
+class SpringblendSceneSettings(bpy.types.PropertyGroup):
+    """Scene.springblend: the server and what a bake covers."""
+
+    server: bpy.props.StringProperty(
+        name="Server", default="127.0.0.1:50051",
+        description="host:port of the springblend server or of the farm's load balancer")
+    timeout: bpy.props.FloatProperty(
+        name="Timeout", default=600.0, min=1.0, unit="TIME_ABSOLUTE",
+        description="Seconds allowed for one call (a whole bake is one call)")
+    colliders: bpy.props.PointerProperty(
+        type=bpy.types.Collection, name="Colliders",
+        description="Objects the mesh must not pass through: empties (sphere or cube display) and meshes; each "
+                    "object's springblend shape (Object properties) says how it is sent")
+    use_scene_range: bpy.props.BoolProperty(
+        name="Scene range", default=True, description="Bake the scene's frame range")
+    frame_start: bpy.props.IntProperty(name="Start", default=1, description="First frame to bake")
+    frame_end: bpy.props.IntProperty(name="End", default=24, description="Last frame to bake")
+
+    def frame_range(self, scene):
+        """(first, last) frame of a bake."""
+        if self.use_scene_range:
+            return scene.frame_start, scene.frame_end
+        return self.frame_start, self.frame_end
+
+
+COLLIDER_SHAPES = [
+    ("AUTO", "Auto", "Empty: sphere or cube display; mesh: a sphere when its vertices lie on one, else its box"),
+    ("SPHERE", "Sphere", "The ball of the object's bounding box (largest half extent)"),
+    ("BOX", "Box", "The object's bounding box"),
+    ("MESH", "Mesh", "The object's (closed) triangle mesh"),
+    ("NONE", "None", "Not a collider"),
+]
+
+CLASSES = [SpringblendPreferences, SpringblendSceneSettings]
+
+
+def register_properties():
+    bpy.types.Scene.springblend = bpy.props.PointerProperty(type=SpringblendSceneSettings)
+    bpy.types.Object.springblend_character = bpy.props.StringProperty(
+        name="Character", description="The springblend character id this mesh was uploaded as")
+    bpy.types.Object.springblend_collider = bpy.props.EnumProperty(
+        name="springblend shape", items=COLLIDER_SHAPES, default="AUTO",
+        description="How this object is sent as a springblend collider")
+
+
+def unregister_properties():
+    del bpy.types.Object.springblend_collider
+    del bpy.types.Object.springblend_character
+    del bpy.types.Scene.springblend

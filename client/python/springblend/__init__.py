@@ -1,0 +1,20 @@
+"""springblend: the Python client of the springblend farm server (physically based blendshapes).
+
+Needs only Debian's python3-grpcio, python3-protobuf and python3-numpy, so it runs inside a DCC's Python.
+Put the build's python directory (build/release/python) on sys.path, then:
+
+    import springblend
+    with springblend.Client("127.0.0.1:50051") as client:
+        character = client.upload(rest, faces, {"bend": bend, "twist": twist}, name="arm")
+        solution = client.solve(character.id, [[0.5, 0.0], [1.0, 0.2]],
+                                colliders=[springblend.colliders.sphere((0, 1, 0), 0.3)])
+        solution.positions  # #frames by #V by 3 float32
+"""
+
+from springblend import colliders
+from springblend._generated import pb
+from springblend.client import CHARACTER_HEADER, Client, InteractiveSession, Solution, SolvedFrame
+from springblend.errors import SpringblendError
+
+__all__ = ["CHARACTER_HEADER", "Client", "InteractiveSession", "Solution", "SolvedFrame", "SpringblendError",
+           "colliders", "pb"]

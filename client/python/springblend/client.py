@@ -1,0 +1,311 @@
+"""The Python client of a springblend server: what a DCC plug-in (Blender, Maya, Houdini) calls.
+
+Every call raises SpringblendError carrying the server's status code and message. Arrays go in and come out
+as numpy arrays in the rest mesh's vertex order.
+"""
+
+import dataclasses
+import queue
+import typing
+
+import grpc
+import numpy as np
+
+from springblend import arrays, colliders as shapes
+from springblend._generated import health_pb2, pb, pb_grpc
+from springblend.errors import SpringblendError, invalid_argument
+
+# The metadata header that names the character of a call, so a load balancer can route by it (the C++
+# client's kCharacterHeader).
+CHARACTER_HEADER = "x-springblend-character"
+
+
+@dataclasses.dataclass
+class SolvedFrame:
+    """One solved frame: index in the request (or in the session), #V by 3 float32 positions, optional normals,
+    and the server's FrameSummary (converged, termination, newton_iterations, residual, contacts, served_by ...).
+    """
+    index: int
+    positions: np.ndarray
+    normals: typing.Optional[np.ndarray]
+    summary: typing.Any
+
+
+@dataclasses.dataclass
+class Solution:
+    """A whole Solve: positions is #frames by #V by 3 float32; summaries one FrameSummary per frame."""
+    positions: np.ndarray
+    normals: typing.Optional[np.ndarray]
+    summaries: list
+
+    @property
+    def converged(self):
+        """True when every frame's Newton solve converged."""
+        return all(s.converged for s in self.summaries)
+
+
+class Client:
+    """A connection to one server (or a load balancer in front of a farm).
+
+    Args:
+        address: host:port of the server.
+        timeout: seconds allowed for each call (a Solve stream counts as one call).
+        piece_bytes: upload piece size, well under gRPC's 4 MiB message limit.
+    """
+
+    def __init__(self, address="127.0.0.1:50051", timeout=600.0, piece_bytes=1 << 20):
+        self.address = address
+        self.timeout = timeout
+        self.piece_bytes = piece_bytes
+        self._channel = grpc.insecure_channel(address, options=[("grpc.max_receive_message_length", 256 << 20)])
+        self._characters = pb_grpc.CharacterServiceStub(self._channel)
+        self._solves = pb_grpc.SolveServiceStub(self._channel)
+        self._health = self._channel.unary_unary(
+            "/grpc.health.v1.Health/Check",
+            request_serializer=health_pb2.HealthCheckRequest.SerializeToString,
+            response_deserializer=health_pb2.HealthCheckResponse.FromString)
+
+    def close(self):
+        """Closes the channel; the client cannot be used afterwards."""
+        self._channel.close()
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+
+    # ---------------------------------------------------------------------------------------------------
+    # Characters
+
+    def upload(self, rest, faces, targets, target_names=None, name="", fixed_vertices=(), static_tolerance=0.0,
+               no_interior=False, no_anchor=False, bending_stiffness=0.0):
+        """Uploads a character and returns its Character message (id, cache_hit, summary, target_names).
+
+        Args:
+            rest: #V by 3 rest positions.
+            faces: #F by 3 triangles, 0-based indices into rest; every target shares them.
+            targets: a dict name -> #V by 3 positions (in weight order), or a list of arrays with target_names.
+            target_names: one unique name per target when targets is a list.
+            name: a label for people (not part of the id).
+            fixed_vertices, static_tolerance, no_interior, no_anchor, bending_stiffness: the rig builder's
+                BuildOptions (zero values mean the server's defaults).
+        """
+        if isinstance(targets, dict):
+            target_names, targets = list(targets.keys()), list(targets.values())
+        targets = list(targets)
+        if target_names is None or len(target_names) != len(targets):
+            raise invalid_argument(f"upload: {len(targets)} targets need as many target_names, got "
+                                   f"{None if target_names is None else len(target_names)}")
+        rest = arrays.as_points(rest, "rest")
+        faces = arrays.as_faces(faces, len(rest))
+        shapes_ = [rest]
+        for target_name, target in zip(target_names, targets):
+            points = arrays.as_points(target, f"target '{target_name}'")
+            if points.shape != rest.shape:
+                raise invalid_argument(f"target '{target_name}': {len(points)} vertices, but the rest mesh has "
+                                       f"{len(rest)}")
+            shapes_.append(points)
+        options = pb.BuildOptions(fixed_vertices=[int(v) for v in fixed_vertices],
+                                  static_tolerance=float(static_tolerance), no_interior=bool(no_interior),
+                                  no_anchor=bool(no_anchor), bending_stiffness=float(bending_stiffness))
+        header = pb.UploadHeader(name=name, vertex_count=len(rest), face_count=len(faces),
+                                 target_names=[str(n) for n in target_names], options=options)
+
+        def chunks():
+            yield pb.UploadChunk(header=header)
+            yield from self._pieces(pb.MeshPiece.FACES, 0, faces.tobytes(), len(faces), 12)
+            for shape, points in enumerate(shapes_):
+                yield from self._pieces(pb.MeshPiece.POSITIONS, shape, arrays.pack_float64(points), len(points), 24)
+
+        return self._call(self._characters.UploadCharacter, chunks())
+
+    def _pieces(self, kind, shape, data, elements, size):
+        per_piece = max(1, self.piece_bytes // size)
+        for first in range(0, elements, per_piece):
+            count = min(per_piece, elements - first)
+            piece = pb.MeshPiece(kind=kind, shape=shape, offset=first, data=data[first * size:(first + count) * size])
+            yield pb.UploadChunk(piece=piece)
+
+    def get(self, character_id, with_faces=False):
+        """The Character message of an uploaded character; with_faces adds its packed triangles."""
+        return self._call(self._characters.GetCharacter,
+                          pb.GetCharacterRequest(id=character_id, with_faces=with_faces), character_id)
+
+    def faces(self, character_id):
+        """The character's triangles as a #F by 3 int32 array."""
+        packed = self.get(character_id, with_faces=True).faces
+        return np.frombuffer(packed, dtype="<i4").reshape(-1, 3)
+
+    def list(self):
+        """Every character the server knows (built ones carry their summary)."""
+        return list(self._call(self._characters.ListCharacters, pb.ListCharactersRequest()).characters)
+
+    def delete(self, character_id):
+        """Removes a character from the server's memory and cache directory."""
+        self._call(self._characters.DeleteCharacter, pb.DeleteCharacterRequest(id=character_id), character_id)
+
+    def healthy(self, timeout=5.0):
+        """True when the server's standard health service reports SERVING (False when unreachable)."""
+        try:
+            response = self._health(health_pb2.HealthCheckRequest(), timeout=timeout)
+        except grpc.RpcError:
+            return False
+        return response.status == health_pb2.HealthCheckResponse.SERVING
+
+    # ---------------------------------------------------------------------------------------------------
+    # Solving
+
+    def solve(self, character_id, weights, colliders=(), collider_transforms=None, pins=None, on_frame=None,
+              **options):
+        """Solves frames and returns a Solution with all of them (see solve_frames for the arguments)."""
+        frames = []
+        for frame in self.solve_frames(character_id, weights, colliders, collider_transforms, pins, **options):
+            if on_frame is not None:
+                on_frame(frame)
+            frames.append(frame)
+        normals = np.stack([f.normals for f in frames]) if frames and frames[0].normals is not None else None
+        return Solution(positions=np.stack([f.positions for f in frames]), normals=normals,
+                        summaries=[f.summary for f in frames])
+
+    def solve_frames(self, character_id, weights, colliders=(), collider_transforms=None, pins=None,
+                     tolerance=0.0, max_iterations=0, linear=False, normals=False):
+        """Streams a Solve: yields one SolvedFrame per frame as the server finishes it.
+
+        Args:
+            character_id: the id upload returned.
+            weights: #frames by #targets (or one frame's #targets), in the character's target order.
+            colliders: Collider messages (see springblend.colliders), fixed for the whole request.
+            collider_transforms: None, or per frame a sequence with one transform per collider: a Transform
+                message or a (translation, (w, x, y, z)) pair.
+            pins: None, or per frame a mapping vertex -> position (or None).
+            tolerance, max_iterations, linear, normals: SolveOptions (zero means the server's default).
+        """
+        request = pb.SolveRequest(
+            character_id=character_id, colliders=list(colliders),
+            options=pb.SolveOptions(residual_tolerance=float(tolerance), max_iterations=int(max_iterations),
+                                    linear=bool(linear), with_normals=bool(normals)),
+            frames=_frame_requests(weights, collider_transforms, pins))
+        try:
+            for frame in self._solves.Solve(request, timeout=self.timeout, metadata=_route(character_id)):
+                yield _decode(frame)
+        except grpc.RpcError as error:
+            raise SpringblendError.from_rpc_error(error) from None
+
+    def interactive(self, character_id, colliders=(), tolerance=0.0, max_iterations=0, linear=False,
+                    normals=False):
+        """Opens an interactive (slider) session; see InteractiveSession."""
+        start = pb.InteractiveStart(
+            character_id=character_id, colliders=list(colliders),
+            options=pb.SolveOptions(residual_tolerance=float(tolerance), max_iterations=int(max_iterations),
+                                    linear=bool(linear), with_normals=bool(normals)))
+        return InteractiveSession(self._solves, start, self.timeout)
+
+    def _call(self, method, request, character_id=""):
+        try:
+            return method(request, timeout=self.timeout, metadata=_route(character_id))
+        except grpc.RpcError as error:
+            raise SpringblendError.from_rpc_error(error) from None
+
+
+class InteractiveSession:
+    """A slider session: send() frames as the artist moves; iterate (or next_frame()) for answers.
+
+    The server answers the newest frame it has and drops overtaken ones, so not every sent index comes back.
+    close() half-closes; iterating then drains the remaining answers until the stream ends. Use it as a
+    context manager to close (and cancel anything unread) on the way out.
+    """
+
+    _END = object()
+
+    def __init__(self, stub, start, timeout):
+        self._outbox = queue.Queue()
+        self._outbox.put(pb.InteractiveRequest(start=start))
+        self._sent = 0
+        self._closed = False
+        self._responses = stub.Interactive(self._requests(), timeout=timeout, metadata=_route(start.character_id))
+
+    def _requests(self):
+        while True:
+            item = self._outbox.get()
+            if item is self._END:
+                return
+            yield item
+
+    def send(self, weights, collider_transforms=None, pins=None):
+        """Queues one frame (weights in target order; one transform per collider or None; pins mapping or None)
+        and returns its index, the index its SolvedFrame will carry."""
+        if self._closed:
+            raise invalid_argument("send: the session is closed")
+        transforms = None if collider_transforms is None else [collider_transforms]
+        frame_pins = None if pins is None else [pins]
+        (request,) = _frame_requests([np.ravel(weights)], transforms, frame_pins)
+        self._outbox.put(pb.InteractiveRequest(frame=request))
+        self._sent += 1
+        return self._sent - 1
+
+    def close(self):
+        """Half-closes: no more frames; the stream ends once the last one is answered."""
+        if not self._closed:
+            self._closed = True
+            self._outbox.put(self._END)
+
+    def cancel(self):
+        """Abandons the session at once."""
+        self.close()
+        self._responses.cancel()
+
+    def next_frame(self):
+        """Blocks for the next SolvedFrame; None once the stream has ended."""
+        try:
+            return _decode(next(self._responses))
+        except StopIteration:
+            return None
+        except grpc.RpcError as error:
+            raise SpringblendError.from_rpc_error(error) from None
+
+    def __iter__(self):
+        while (frame := self.next_frame()) is not None:
+            yield frame
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, exc_type, *exc):
+        if exc_type is None:
+            self.close()
+        else:
+            self.cancel()
+
+
+def _route(character_id):
+    return ((CHARACTER_HEADER, character_id),) if character_id else ()
+
+
+def _decode(frame):
+    normals = arrays.unpack_float32(frame.normals) if frame.normals else None
+    return SolvedFrame(index=frame.index, positions=arrays.unpack_float32(frame.positions), normals=normals,
+                       summary=frame.summary)
+
+
+def _frame_requests(weights, collider_transforms, pins):
+    weights = np.asarray(weights, dtype=np.float64)
+    if weights.ndim == 1:
+        weights = weights[np.newaxis, :]
+    if weights.ndim != 2 or weights.shape[0] == 0:
+        raise invalid_argument(f"weights: expected #frames by #targets, got shape {weights.shape}")
+    count = weights.shape[0]
+    for what, per_frame in (("collider_transforms", collider_transforms), ("pins", pins)):
+        if per_frame is not None and len(per_frame) != count:
+            raise invalid_argument(f"{what}: one entry per frame ({count}), got {len(per_frame)}")
+    frames = []
+    for i in range(count):
+        frame = pb.FrameRequest(weights=weights[i].tolist())
+        if collider_transforms is not None:
+            for motion in collider_transforms[i] or ():
+                frame.collider_transforms.append(
+                    motion if isinstance(motion, pb.Transform) else shapes.transform(*motion))
+        if pins is not None and pins[i]:
+            frame.pins.extend(shapes.pin(v, p) for v, p in pins[i].items())
+        frames.append(frame)
+    return frames
