@@ -1,0 +1,149 @@
+"""The springblend Python client against a real server: upload from arrays, solve into arrays equal to the
+C++ CLI's output, an interactive session, health, and errors carrying the server's status and message."""
+
+import tempfile
+import unittest
+
+import grpc
+import numpy as np
+
+import springblend
+from springblend.colliders import box, sphere
+import springblend_testing as testing
+
+# Frames of the two cylinder targets with a ball in the way (the quickstart's obstacle), solved by both the
+# Python client and the CLI.
+WEIGHTS = [[0.2, 0.1], [0.5, 0.25], [0.8, 0.4]]
+BALL = ((-1.7, 0.75, 0.75), 0.3)
+
+
+class ClientTest(unittest.TestCase):
+    @classmethod
+    def setUpClass(cls):
+        cls.server = testing.Server()
+        cls.client = springblend.Client(cls.server.address, timeout=120)
+        cls.rest, cls.faces, cls.targets = testing.cylinder()
+        cls.character = cls.client.upload(cls.rest, cls.faces, cls.targets, name="cylinder")
+        cls.diagonal = testing.bounding_box_diagonal(cls.rest)
+
+    @classmethod
+    def tearDownClass(cls):
+        cls.client.close()
+        cls.server.stop()
+
+    def test_health(self):
+        self.assertTrue(self.client.healthy())
+        with springblend.Client("127.0.0.1:1", timeout=5) as nobody:
+            self.assertFalse(nobody.healthy(timeout=2))
+
+    def test_upload_from_arrays(self):
+        c = self.character
+        self.assertRegex(c.id, "^[0-9a-f]{64}$")
+        self.assertEqual(list(c.target_names), list(testing.CYLINDER_TARGETS))
+        self.assertEqual(c.summary.surface_vertices, len(self.rest))
+        self.assertEqual(c.summary.faces, len(self.faces))
+        # Same meshes (names are not part of the id): the CLI's upload of the OBJ files is a cache hit.
+        self.assertEqual(testing.cli_upload_cylinder(self.server.address), c.id)
+        again = self.client.upload(self.rest, self.faces, list(self.targets.values()),
+                                   target_names=list(self.targets))
+        self.assertTrue(again.cache_hit)
+        self.assertEqual(again.id, c.id)
+
+    def test_small_pieces_give_the_same_character(self):
+        with springblend.Client(self.server.address, piece_bytes=1000) as small:
+            self.assertEqual(small.upload(self.rest, self.faces, self.targets).id, self.character.id)
+
+    def test_get_list_and_faces(self):
+        self.assertEqual(self.client.get(self.character.id).name, "cylinder")
+        self.assertIn(self.character.id, [c.id for c in self.client.list()])
+        np.testing.assert_array_equal(self.client.faces(self.character.id), self.faces)
+
+    def test_solve_equals_cli(self):
+        solution = self.client.solve(self.character.id, WEIGHTS, colliders=[sphere(*BALL)])
+        self.assertEqual(solution.positions.shape, (len(WEIGHTS), len(self.rest), 3))
+        self.assertEqual(solution.positions.dtype, np.float32)
+        self.assertTrue(solution.converged, [s.message for s in solution.summaries])
+        self.assertGreater(sum(s.contacts for s in solution.summaries), 0, "the ball should touch the cylinder")
+        with tempfile.TemporaryDirectory() as directory:
+            cli_positions = testing.cli_solve(
+                self.server.address, self.character.id, [{"weights": w} for w in WEIGHTS],
+                ["sphere:{},{},{},{}".format(*BALL[0], BALL[1])], directory)
+        error = np.abs(solution.positions - cli_positions).max()
+        self.assertLessEqual(error, 1e-5 * self.diagonal)
+
+    def test_solve_streams_frames_with_moving_colliders_and_pins(self):
+        translations = [[(0.0, 0.0, 0.0), (1.0, 0.0, 0.0, 0.0)], [(0.1, 0.0, 0.0), (1.0, 0.0, 0.0, 0.0)]]
+        frames = list(self.client.solve_frames(
+            self.character.id, WEIGHTS[:2], colliders=[sphere(*BALL)],
+            collider_transforms=[[t] for t in translations], pins=[{0: self.rest[0]}, None], normals=True))
+        self.assertEqual([f.index for f in frames], [0, 1])
+        self.assertEqual(frames[0].normals.shape, (len(self.rest), 3))
+        self.assertEqual(frames[0].summary.pins, 1)
+        np.testing.assert_allclose(frames[0].positions[0], self.rest[0], atol=1e-5 * self.diagonal)
+
+    def test_linear_option_is_the_linear_blend(self):
+        solution = self.client.solve(self.character.id, [0.5, 0.25], linear=True)
+        targets = list(self.targets.values())
+        linear = self.rest + 0.5 * (targets[0] - self.rest) + 0.25 * (targets[1] - self.rest)
+        np.testing.assert_allclose(solution.positions[0], linear, atol=1e-5 * self.diagonal)
+
+    def test_interactive_session_answers_the_newest_frame(self):
+        with self.client.interactive(self.character.id, colliders=[sphere(*BALL)]) as session:
+            indices = [session.send(w) for w in WEIGHTS]
+            session.close()
+            frames = list(session)
+        self.assertEqual(indices, [0, 1, 2])
+        self.assertGreaterEqual(len(frames), 1)
+        self.assertEqual(frames[-1].index, 2, "the last frame sent is never overtaken")
+        self.assertTrue(frames[-1].summary.converged)
+        alone = self.client.solve(self.character.id, WEIGHTS[2], colliders=[sphere(*BALL)])
+        # Warm starts differ, so equal to the solver's tolerance rather than to the bit.
+        self.assertLessEqual(np.abs(frames[-1].positions - alone.positions[0]).max(), 1e-4 * self.diagonal)
+
+    def test_wrong_weight_count_is_invalid_argument_with_the_servers_message(self):
+        with self.assertRaises(springblend.SpringblendError) as caught:
+            self.client.solve(self.character.id, [0.5, 0.5, 0.5])
+        self.assertEqual(caught.exception.code, grpc.StatusCode.INVALID_ARGUMENT)
+        self.assertIn("weight", caught.exception.message)
+        self.assertIn("INVALID_ARGUMENT", str(caught.exception))
+
+    def test_bad_collider_is_invalid_argument(self):
+        with self.assertRaises(springblend.SpringblendError) as caught:
+            self.client.solve(self.character.id, [0.5, 0.5], colliders=[box((0, 0, 0), (1, -1, 1))])
+        self.assertEqual(caught.exception.code, grpc.StatusCode.INVALID_ARGUMENT)
+        self.assertTrue(caught.exception.message)
+
+    def test_unknown_character_is_not_found(self):
+        unknown = "0" * 64
+        for call in (lambda: self.client.get(unknown), lambda: self.client.solve(unknown, [0.5, 0.5])):
+            with self.assertRaises(springblend.SpringblendError) as caught:
+                call()
+            self.assertEqual(caught.exception.code, grpc.StatusCode.NOT_FOUND)
+            self.assertIn(unknown, caught.exception.message)
+
+    def test_interactive_with_unknown_character_raises(self):
+        with self.assertRaises(springblend.SpringblendError) as caught:
+            with self.client.interactive("0" * 64) as session:
+                session.send([0.5, 0.5])
+                session.close()
+                list(session)
+        self.assertEqual(caught.exception.code, grpc.StatusCode.NOT_FOUND)
+
+    def test_mismatched_target_is_refused_before_sending(self):
+        with self.assertRaises(springblend.SpringblendError) as caught:
+            self.client.upload(self.rest, self.faces, {"half": self.rest[:10]})
+        self.assertEqual(caught.exception.code, grpc.StatusCode.INVALID_ARGUMENT)
+        self.assertIn("half", caught.exception.message)
+
+    def test_delete(self):
+        rest, faces, targets = testing.cylinder()
+        only_bend = {testing.CYLINDER_TARGETS[0]: targets[testing.CYLINDER_TARGETS[0]]}
+        character = self.client.upload(rest, faces, only_bend, no_interior=True)
+        self.client.delete(character.id)
+        with self.assertRaises(springblend.SpringblendError) as caught:
+            self.client.get(character.id)
+        self.assertEqual(caught.exception.code, grpc.StatusCode.NOT_FOUND)
+
+
+if __name__ == "__main__":
+    unittest.main()
