@@ -48,10 +48,15 @@ def load_obj(path):
 
 
 def cylinder():
-    """(rest, faces, {target name: positions}) of the cylinder rig, names as the CLI gives them (file stems)."""
-    rest, faces = load_obj(CYLINDER / "cylinder.obj")
-    targets = {name: load_obj(CYLINDER / f"{name}.obj")[0] for name in CYLINDER_TARGETS}
-    return rest, faces, targets
+    """(rest, faces, {target name: positions}) of the cylinder rig, names as the CLI gives them (file stems).
+
+    Coordinates are rounded to float32 as the C++ loader (OpenMesh's OBJ reader) does, so an upload of these
+    arrays is the very character the CLI uploads from the files (same content id)."""
+    def positions(name):
+        return load_obj(CYLINDER / f"{name}.obj")[0].astype(np.float32).astype(np.float64)
+
+    faces = load_obj(CYLINDER / "cylinder.obj")[1]
+    return positions("cylinder"), faces, {name: positions(name) for name in CYLINDER_TARGETS}
 
 
 def bounding_box_diagonal(points):
