@@ -53,7 +53,9 @@ def main():
     zip_path = testing.required_path("SPRINGBLEND_ADDON_ZIP")
     with testing.Server() as server, tempfile.TemporaryDirectory(prefix="springblend-blender-") as directory:
         character = testing.cli_upload_cylinder(server.address)
-        expected = expected_positions(server, character, directory)
+        expected, summaries = expected_positions(server, character, directory)
+        if not all(s["converged"] for s in summaries) or sum(s["contacts"] for s in summaries) == 0:
+            raise SystemExit(f"bake_test: the CLI's frames should converge with the ball in contact: {summaries}")
         config = {
             "server": server.address, "addon_zip": zip_path, "cylinder": str(testing.CYLINDER),
             "targets": list(testing.CYLINDER_TARGETS), "frames": FRAMES, "weights": WEIGHTS,

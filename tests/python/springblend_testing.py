@@ -137,11 +137,14 @@ def cli_upload_cylinder(address):
 
 
 def cli_solve(address, character, frames, colliders, directory):
-    """Solves a scene with the CLI (frames as in a --frames JSON file, collider specs as for --collider) and
-    returns the solved positions, #frames by #V by 3, read back from its OBJ files."""
+    """Solves a scene with the CLI (frames as in a --frames JSON file, collider specs as for --collider).
+    Returns the solved positions, #frames by #V by 3, read back from its OBJ files, and its per-frame summaries
+    (the JSON lines it prints: converged, contacts, ...)."""
     scene = os.path.join(directory, "scene.json")
     with open(scene, "w") as out:
         json.dump({"colliders": list(colliders), "frames": frames}, out)
     out_dir = os.path.join(directory, "frames")
-    cli("solve", "--server", address, "--character", character, "--frames", scene, "--out", out_dir)
-    return np.stack([load_obj(os.path.join(out_dir, f"frame_{i:04d}.obj"))[0] for i in range(len(frames))])
+    lines = cli("solve", "--server", address, "--character", character, "--frames", scene, "--out", out_dir)
+    summaries = [json.loads(line) for line in lines.splitlines() if line.startswith("{")]
+    positions = np.stack([load_obj(os.path.join(out_dir, f"frame_{i:04d}.obj"))[0] for i in range(len(frames))])
+    return positions, summaries

@@ -65,7 +65,7 @@ class ClientTest(unittest.TestCase):
         self.assertTrue(solution.converged, [s.message for s in solution.summaries])
         self.assertGreater(sum(s.contacts for s in solution.summaries), 0, "the ball should touch the cylinder")
         with tempfile.TemporaryDirectory() as directory:
-            cli_positions = testing.cli_solve(
+            cli_positions, _ = testing.cli_solve(
                 self.server.address, self.character.id, [{"weights": w} for w in WEIGHTS],
                 ["sphere:{},{},{},{}".format(*BALL[0], BALL[1])], directory)
         error = np.abs(solution.positions - cli_positions).max()
