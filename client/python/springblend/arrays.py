@@ -5,9 +5,17 @@ import numpy as np
 from springblend.errors import invalid_argument
 
 
+def as_array(values, what, dtype=None):
+    """np.asarray, with a ragged or non-numeric input reported as an INVALID_ARGUMENT naming `what`."""
+    try:
+        return np.asarray(values, dtype=dtype)
+    except (TypeError, ValueError) as error:
+        raise invalid_argument(f"{what}: not a rectangular array of numbers ({error})") from None
+
+
 def as_points(values, what):
     """Returns values as a C-contiguous #V by 3 float64 array, or raises naming `what`."""
-    array = np.asarray(values, dtype=np.float64)
+    array = as_array(values, what, np.float64)
     if array.ndim != 2 or array.shape[1] != 3:
         raise invalid_argument(f"{what}: expected a #V by 3 array of positions, got shape {array.shape}")
     if not np.all(np.isfinite(array)):
@@ -18,7 +26,7 @@ def as_points(values, what):
 
 def as_faces(values, vertex_count):
     """Returns values as a C-contiguous #F by 3 int32 array of 0-based vertex indices, or raises."""
-    array = np.asarray(values)
+    array = as_array(values, "faces")
     if array.ndim != 2 or array.shape[1] != 3 or array.shape[0] == 0:
         raise invalid_argument(f"faces: expected a non-empty #F by 3 array of triangles, got shape {array.shape}")
     if not np.issubdtype(array.dtype, np.integer):

@@ -289,7 +289,7 @@ def _decode(frame):
 
 
 def _frame_requests(weights, collider_transforms, pins):
-    weights = np.asarray(weights, dtype=np.float64)
+    weights = arrays.as_array(weights, "weights (one row of #targets numbers per frame)", np.float64)
     if weights.ndim == 1:
         weights = weights[np.newaxis, :]
     if weights.ndim != 2 or weights.shape[0] == 0:
