@@ -1,6 +1,8 @@
 #!/usr/bin/env bash
 # Installs everything springblend needs to build, test and run, from Debian 12's archive only.
 # Idempotent: when every package is already present it touches nothing and returns at once.
+#   install-deps.sh            everything: build, tests (Python client, headless Blender) and benchmarks
+#   install-deps.sh --build    only what building the C++ server and CLI needs (the container image)
 set -euo pipefail
 
 packages=(
@@ -10,8 +12,11 @@ packages=(
   libspdlog-dev libfmt-dev libcli11-dev nlohmann-json3-dev libtbb-dev
   libgrpc++-dev libprotobuf-dev protobuf-compiler protobuf-compiler-grpc libssl-dev
   libgtest-dev libgmock-dev libbenchmark-dev
-  python3 python3-grpcio python3-numpy python3-protobuf blender
 )
+if [ "${1:-}" != "--build" ]; then
+  # The DCC clients' tests (Python package, headless Blender) and the benchmark's plot.
+  packages+=(python3 python3-grpcio python3-numpy python3-protobuf blender gnuplot-nox)
+fi
 
 missing=()
 for p in "${packages[@]}"; do
