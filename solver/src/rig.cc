@@ -87,6 +87,10 @@ void RigOptions::Validate() const {
   in_range(radius_edge_ratio, 1.01, 100.0, "radius_edge_ratio");
   in_range(tetgen_timeout_seconds, 0.001, 86400.0, "tetgen_timeout_seconds");
   in_range(anchor_size, 3, 1000, "anchor_size");
+  if (!(shell_thickness > 0.0 && shell_thickness <= 100.0)) {
+    throw Error(ErrorCode::kInvalidInput,
+                fmt::format("rig option shell_thickness = {} is outside (0, 100]", shell_thickness));
+  }
   if (anchor_center && !(std::isfinite((*anchor_center)[0]) && std::isfinite((*anchor_center)[1]) &&
                          std::isfinite((*anchor_center)[2]))) {
     throw Error(ErrorCode::kInvalidInput, "rig option anchor_center must be finite");
@@ -116,6 +120,8 @@ class RigBuilder {
   static void FindDegenerateFaces(Rig& rig);
   static void BuildBoundary(Rig& rig);
   static void PlaceInterior(const std::shared_ptr<Rig>& rig, const internal::Interior& interior);
+  static void BuildShell(Rig& rig, std::unordered_set<std::uint64_t>& springs, internal::Interior& interior);
+  static void PlaceShell(Rig& rig);
   static void AddSpring(Rig& rig, std::unordered_set<std::uint64_t>& springs, std::uint64_t key, SpringKind kind);
 };
 
@@ -129,6 +135,61 @@ std::uint64_t PairKey(int a, int b) {
 
 double Elapsed(std::chrono::steady_clock::time_point since) {
   return std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - since).count();
+}
+
+// Area-weighted vertex normals of a shape; a vertex whose faces all vanish gets `fallback`'s normal.
+Points VertexNormals(const Points& x, const Faces& faces, const Points* fallback) {
+  Points normals = Points::Zero(x.rows(), 3);
+  for (Eigen::Index f = 0; f < faces.rows(); ++f) {
+    const Eigen::RowVector3d e1 = x.row(faces(f, 1)) - x.row(faces(f, 0));
+    const Eigen::RowVector3d e2 = x.row(faces(f, 2)) - x.row(faces(f, 0));
+    const Eigen::RowVector3d n = e1.cross(e2);  // twice the area, along the normal
+    for (int c = 0; c < 3; ++c) normals.row(faces(f, c)) += n;
+  }
+  for (Eigen::Index v = 0; v < normals.rows(); ++v) {
+    const double length = normals.row(v).norm();
+    if (length > 0.0) {
+      normals.row(v) /= length;
+    } else if (fallback != nullptr) {
+      normals.row(v) = fallback->row(v);
+    }
+  }
+  return normals;
+}
+
+// The vertices of the largest connected set of boundary edges (edges with one face): the outer rim of an
+// open surface such as a face mask (the mouth and eye holes are smaller). Empty for a closed surface.
+std::vector<int> OuterRim(const Faces& faces, int vertices) {
+  std::unordered_map<std::uint64_t, int> count;
+  for (Eigen::Index f = 0; f < faces.rows(); ++f) {
+    for (int c = 0; c < 3; ++c) ++count[PairKey(faces(f, c), faces(f, (c + 1) % 3))];
+  }
+  std::vector<int> parent(vertices);
+  std::iota(parent.begin(), parent.end(), 0);
+  const auto find = [&](int v) {
+    while (parent[v] != v) v = parent[v] = parent[parent[v]];
+    return v;
+  };
+  std::vector<char> on_boundary(vertices, 0);
+  for (const auto& [key, n] : count) {
+    if (n != 1) continue;
+    const int a = static_cast<int>(key >> 32), b = static_cast<int>(key & 0xffffffffu);
+    on_boundary[a] = on_boundary[b] = 1;
+    parent[find(a)] = find(b);
+  }
+  std::unordered_map<int, int> size;
+  for (int v = 0; v < vertices; ++v) {
+    if (on_boundary[v]) ++size[find(v)];
+  }
+  int best = -1;
+  for (const auto& [root, n] : size) {
+    if (best < 0 || n > size[best] || (n == size[best] && root < best)) best = root;
+  }
+  std::vector<int> rim;
+  for (int v = 0; v < vertices && best >= 0; ++v) {
+    if (on_boundary[v] && find(v) == best) rim.push_back(v);
+  }
+  return rim;
 }
 
 }  // namespace
@@ -318,6 +379,52 @@ void RigBuilder::FindDegenerateFaces(Rig& rig) {
   }
 }
 
+void RigBuilder::BuildShell(Rig& rig, std::unordered_set<std::uint64_t>& springs, internal::Interior& interior) {
+  RigSummary& s = rig.summary_;
+  const Points& rest = rig.rest_.vertices;
+  const int n = static_cast<int>(rest.rows());
+  double edge_sum = 0.0;
+  int edges = 0;
+  for (size_t q = 0; q < rig.spring_a_.size(); ++q) {
+    if (rig.spring_kind_[q] != SpringKind::kStructure) continue;
+    edge_sum += (rest.row(rig.spring_a_[q]) - rest.row(rig.spring_b_[q])).norm();
+    ++edges;
+  }
+  rig.shell_offset_ = rig.options_.shell_thickness * (edges > 0 ? edge_sum / edges : 0.0);
+  rig.shell_normals_rest_ = VertexNormals(rest, rig.rest_.faces, nullptr);
+  interior.vertices.resize(2 * n, 3);
+  interior.vertices.topRows(n) = rest;
+  interior.vertices.bottomRows(n) = rest - rig.shell_offset_ * rig.shell_normals_rest_;
+  // Springs of the prism layer: each vertex to its inner copy, the inner copies of every edge, and both
+  // diagonals of the quad between an edge and its inner copy (shear).
+  const size_t structure = rig.spring_a_.size();
+  for (int v = 0; v < n; ++v) AddSpring(rig, springs, PairKey(v, n + v), SpringKind::kInternal);
+  for (size_t q = 0; q < structure; ++q) {
+    if (rig.spring_kind_[q] != SpringKind::kStructure) continue;
+    const int a = rig.spring_a_[q], b = rig.spring_b_[q];
+    AddSpring(rig, springs, PairKey(n + a, n + b), SpringKind::kInternal);
+    AddSpring(rig, springs, PairKey(a, n + b), SpringKind::kInternal);
+    AddSpring(rig, springs, PairKey(b, n + a), SpringKind::kInternal);
+  }
+  s.shell_vertices = n;
+  s.interior = "shell";
+  s.interior_reason = fmt::format("{}; thickness from an inner layer {:.3g} ({} mean edge length) inside",
+                                  s.interior_reason, rig.shell_offset_, rig.options_.shell_thickness);
+}
+
+void RigBuilder::PlaceShell(Rig& rig) {
+  // Each target's inner layer: offset against that target's own vertex normals, so every target is an
+  // unstressed state of the whole system.
+  const int n = rig.summary_.surface_vertices;
+  for (size_t t = 0; t < rig.targets_.size(); ++t) {
+    const Points& x = rig.targets_[t].vertices;
+    const Points normals = VertexNormals(x, rig.rest_.faces, &rig.shell_normals_rest_);
+    Points& shape = rig.shapes_[t + 1];
+    shape.topRows(n) = x;
+    shape.bottomRows(n) = x - rig.shell_offset_ * normals;
+  }
+}
+
 void RigBuilder::BuildBoundary(Rig& rig) {
   RigSummary& s = rig.summary_;
   const Points& rest = rig.rest_.vertices;
@@ -345,6 +452,21 @@ void RigBuilder::BuildBoundary(Rig& rig) {
     }
     if (!fixed[v]) ++s.user_fixed_vertices;
     fixed[v] = 1;
+  }
+  if (rig.options_.hold_outer_rim && rig.options_.interior && s.interior_vertices == 0 && s.cap_vertices == 0 &&
+      s.boundary_edges > 0) {
+    // An open sheet with no volume behind it: hold its outer rim on the linear blend, as a face mask is
+    // stitched to the head it belongs to. Without it the free rim makes the sheet floppy and its
+    // equilibrium ambiguous.
+    int held = 0;
+    for (int v : OuterRim(rig.rest_.faces, n)) {
+      if (!fixed[v]) ++held;
+      fixed[v] = 1;
+    }
+    s.rim_vertices = held;
+    s.notes.push_back(fmt::format("open surface without an interior: its outer rim ({} more vertices) is held "
+                                  "on the linear blend (RigOptions::hold_outer_rim)",
+                                  held));
   }
   for (int v = 0; v < n; ++v) {
     if (fixed[v]) rig.fixed_vertices_.push_back(v);
@@ -562,6 +684,10 @@ std::shared_ptr<const Rig> RigBuilder::Build(TriangleMesh rest, std::vector<Tria
   BuildSurfaceSprings(*rig, springs);
   internal::Interior interior;
   BuildInterior(*rig, springs, interior);
+  if (options.interior && options.shell && interior.path == internal::Interior::Path::kSurfaceOnly &&
+      s.boundary_edges > 0) {
+    BuildShell(*rig, springs, interior);
+  }
   s.vertices = static_cast<int>(interior.vertices.rows());
   rig->shapes_.assign(rig->targets_.size() + 1, Points());
   rig->shapes_[0] = interior.vertices;
@@ -577,7 +703,11 @@ std::shared_ptr<const Rig> RigBuilder::Build(TriangleMesh rest, std::vector<Tria
   rig->cholesky_ = internal::SparseCholesky::Create(options.linear_solver);
   rig->cholesky_->Analyze(rig->pattern_->matrix);
 
-  PlaceInterior(rig, interior);
+  if (s.shell_vertices > 0) {
+    PlaceShell(*rig);
+  } else {
+    PlaceInterior(rig, interior);
+  }
   ComputeRestLengths(*rig);
   if (s.boundary_mode == BoundaryMode::kFloating) {
     s.notes.push_back(fmt::format(

@@ -63,6 +63,12 @@ void SolveOptions::Validate() const {
     fail(fmt::format("solve option max_line_search_steps = {} is outside [1, 60]",
                      max_line_search_steps));
   }
+  if (max_cg_iterations < 1 || max_cg_iterations > 10000) {
+    fail(fmt::format("solve option max_cg_iterations = {} is outside [1, 10000]", max_cg_iterations));
+  }
+  if (!(refactor_time_ratio > 0.0 && refactor_time_ratio <= 100.0)) {
+    fail(fmt::format("solve option refactor_time_ratio = {} is outside (0, 100]", refactor_time_ratio));
+  }
 }
 
 void ValidateWeights(const Rig& rig, const std::vector<double>& weights) {
@@ -159,6 +165,7 @@ namespace {
 constexpr size_t kGrain = 2048;
 constexpr double kNoHessian = -1.0;  // Assemble: forces only
 constexpr double kNoProgress = 1e-15;  // a step this short (of the diagonal) changes nothing
+constexpr double kMaxForcing = 0.1;    // inexact Newton: the loosest relative accuracy of a linear solve
 
 double Elapsed(std::chrono::steady_clock::time_point since) {
   return std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - since).count();
@@ -183,10 +190,15 @@ class Solver::Impl {
     step_.resize(3 * n);
     trial_.resize(3 * n);
     fixed_dof_.assign(3 * n, 0);
+    spring_product_.resize(static_cast<size_t>(3) * m);
+    cg_residual_.resize(3 * n);
+    cg_preconditioned_.resize(3 * n);
+    cg_direction_.resize(3 * n);
+    cg_product_.resize(3 * n);
   }
 
   SolveSummary Solve(const Frame& frame, Points* positions);
-  void Reset() { has_previous_ = false; }
+  void Reset() { has_previous_ = has_before_ = false; }
   void SetWarmStart(const Points& all_vertices) {
     if (all_vertices.rows() != rig_->num_vertices()) {
       throw Error(ErrorCode::kInvalidInput,
@@ -194,7 +206,9 @@ class Solver::Impl {
     }
     previous_ = all_vertices;
     previous_motion_.reset();
+    previous_weights_.clear();
     has_previous_ = true;
+    has_before_ = false;
   }
   const Points& all_positions() const { return previous_; }
   void SetColliders(std::vector<Collider> colliders) {
@@ -225,9 +239,21 @@ class Solver::Impl {
   void ChooseLinearSystem();
   std::vector<std::pair<int, Eigen::Vector3d>> HeldVertices(const Frame& frame, const Points& linear,
                                                             std::optional<internal::AnchorMotion>* motion) const;
-  void PlaceStart(const Points& linear, const std::optional<internal::AnchorMotion>& motion);
+  void PlaceStart(const Points& linear, const std::optional<internal::AnchorMotion>& motion,
+                  const std::vector<double>& weights);
   // Newton's method from x_ with the held coordinates fixed_dof_; adds to the summary's counters.
   void Newton(SolveSummary& summary);
+  // The Newton direction step_ from force_ at x_: a fresh factorization and a direct solve, or conjugate
+  // gradients preconditioned by the kept factorization. False (with the summary's message) on failure.
+  bool NewtonDirection(double forcing, SolveSummary& summary);
+  bool FactorizeAndSolve(SolveSummary& summary);
+  // Conjugate gradients on H step = force with the kept factorization as preconditioner; H is applied
+  // matrix-free from the per-spring blocks of the last Assemble. False when it hit negative curvature or
+  // did not reach the forcing tolerance in max_cg_iterations.
+  bool PreconditionedCg(double forcing, SolveSummary& summary);
+  void HessianProduct(const Eigen::VectorXd& v, Eigen::VectorXd* product);
+  void ApplyPreconditioner(const Eigen::VectorXd& r, Eigen::VectorXd* z);
+  bool PreconditionerUsable() const;
   // One round of the contact active set; returns whether the set changed.
   bool UpdateContacts(const std::vector<RigidTransform>& motions);
 
@@ -251,6 +277,16 @@ class Solver::Impl {
   std::vector<double> spring_force_;    // per spring: force on endpoint a (3)
   std::vector<char> fixed_dof_;
   double diagonal_shift_ = 0.0;
+  // The factorization kept for reuse (reuse_factorization): which system holds it and its cost.
+  struct KeptFactor {
+    bool valid = false;
+    bool reduced = false;  // in reduced_ (its `held` mask) rather than in cholesky_
+    double ms = 0.0;       // how long it took to compute
+    size_t attempt = 0;    // the rung of the factorization ladder that succeeded
+    bool refactor_next = false;  // the last conjugate gradients cost too much: refactor at the next step
+  } kept_;
+  std::vector<double> spring_product_;  // per spring: H_q (v_a - v_b)
+  Eigen::VectorXd cg_residual_, cg_preconditioned_, cg_direction_, cg_product_;
   bool absolute_projection_ = false;
 
   Eigen::VectorXd x_, force_, step_, trial_;
@@ -266,6 +302,12 @@ class Solver::Impl {
   Points previous_;
   std::optional<internal::AnchorMotion> previous_motion_;  // the anchor's motion in the previous frame
   bool has_previous_ = false;
+  std::vector<double> previous_weights_;
+  // The frame before the previous one, for the secant predictor.
+  Points before_;
+  std::optional<internal::AnchorMotion> before_motion_;
+  std::vector<double> before_weights_;
+  bool has_before_ = false;
 };
 
 void Solver::Impl::PrepareFrame(const std::vector<double>& weights) {
@@ -500,18 +542,188 @@ bool SpansRigidly(const std::vector<Eigen::Vector3d>& points, double scale) {
 
 }  // namespace
 
+bool Solver::Impl::FactorizeAndSolve(SolveSummary& summary) {
+  // The true Hessian converges quadratically but is indefinite where springs are compressed; when its
+  // Cholesky fails, halve the compressed springs' negative transverse stiffness, then drop it (projected
+  // Newton). The projected Hessian is still singular where the surface is flat at rest (a vertex inside a
+  // flat region moves out of plane without stretching any spring to first order), so the last resort is
+  // a Levenberg-Marquardt shift of the diagonal, growing until the factorization succeeds.
+  const Rig& rig = *rig_;
+  const auto factor_start = std::chrono::steady_clock::now();
+  ChooseLinearSystem();
+  struct Attempt {
+    double negative_scale, shift;
+  };
+  const double k_mean = 1.0 / rig.summary().mean_rest_length;
+  const std::array<Attempt, 7> attempts = {{{1.0, 0.0},
+                                            {0.5, 0.0},
+                                            {0.0, 0.0},
+                                            {0.0, 1e-6 * k_mean},
+                                            {0.0, 1e-4 * k_mean},
+                                            {0.0, 1e-2 * k_mean},
+                                            {0.0, 1.0 * k_mean}}};
+  size_t first = options_.hessian == HessianMode::kTrueWithProjectedFallback ? 0 : 2;
+  // A factorization kept as a preconditioner need not be the exact Hessian: start one rung below the
+  // one that worked last time, so a known-indefinite true Hessian is not factored again and again.
+  if (options_.reuse_factorization && kept_.attempt > first) first = std::max(first, kept_.attempt - 1);
+  internal::FactorStatus status = internal::FactorStatus::kFailed;
+  kept_.valid = false;
+  size_t used = first;
+  for (size_t i = first; i < attempts.size(); ++i) {
+    const Attempt& attempt = attempts[i];
+    Assemble(x_, attempt.negative_scale, attempt.shift);
+    status = Factorize();
+    ++summary.factorizations;
+    if (attempt.negative_scale < 1.0) ++summary.projected_factorizations;
+    if (attempt.shift > 0.0) ++summary.shifted_factorizations;
+    used = i;
+    if (status != internal::FactorStatus::kNotPositiveDefinite) break;
+  }
+  const double ms = Elapsed(factor_start);
+  summary.factorize_ms += ms;
+  if (status != internal::FactorStatus::kOk) {
+    summary.message = "the Hessian could not be factorized even with a diagonal shift";
+    return false;
+  }
+  kept_ = KeptFactor{true, use_reduced_, ms, used, false};
+  SolveLinear(force_, &step_);
+  // Leave the per-spring blocks of the true Hessian at x_ for later matrix-free products.
+  Assemble(x_, 1.0);
+  if (!step_.allFinite()) {
+    summary.message = "the Newton step is not finite";
+    return false;
+  }
+  return true;
+}
+
+bool Solver::Impl::PreconditionerUsable() const {
+  if (!kept_.valid || kept_.refactor_next) return false;
+  if (!kept_.reduced) return true;  // identity rows for held coordinates: SPD on any free set
+  // A factorization of a reduced system covers only its free coordinates; every free one must be there.
+  const std::vector<char>& held = reduced_->held;
+  for (size_t d = 0; d < fixed_dof_.size(); ++d) {
+    if (!fixed_dof_[d] && held[d]) return false;
+  }
+  return true;
+}
+
+void Solver::Impl::ApplyPreconditioner(const Eigen::VectorXd& r, Eigen::VectorXd* z) {
+  if (kept_.reduced) {
+    Reduced& red = *reduced_;
+    for (size_t i = 0; i < red.dofs.size(); ++i) red.rhs[static_cast<Eigen::Index>(i)] = r[red.dofs[i]];
+    red.cholesky->Solve(red.rhs.data(), red.solution.data());
+    z->setZero();
+    for (size_t i = 0; i < red.dofs.size(); ++i) (*z)[red.dofs[i]] = red.solution[static_cast<Eigen::Index>(i)];
+  } else {
+    cholesky_->Solve(r.data(), z->data());
+  }
+  // Restricted to the free coordinates of this system, an SPD preconditioner stays SPD.
+  for (Eigen::Index d = 0; d < z->size(); ++d) {
+    if (fixed_dof_[d]) (*z)[d] = 0.0;
+  }
+}
+
+void Solver::Impl::HessianProduct(const Eigen::VectorXd& v, Eigen::VectorXd* product) {
+  // H v on the free coordinates, from the per-spring blocks H_q: a spring adds H_q (v_a - v_b) to a and
+  // subtracts it from b. Held coordinates are zero in v and in the product.
+  const Rig& rig = *rig_;
+  const int m = rig.num_springs();
+  const int n = rig.num_vertices();
+  const int* a = rig.spring_a().data();
+  const int* b = rig.spring_b().data();
+  tbb::parallel_for(tbb::blocked_range<int>(0, m, kGrain), [&](const tbb::blocked_range<int>& range) {
+    for (int q = range.begin(); q != range.end(); ++q) {
+      const double* h = &spring_hessian_[6 * static_cast<size_t>(q)];
+      const double d0 = v[3 * a[q]] - v[3 * b[q]];
+      const double d1 = v[3 * a[q] + 1] - v[3 * b[q] + 1];
+      const double d2 = v[3 * a[q] + 2] - v[3 * b[q] + 2];
+      double* out = &spring_product_[3 * static_cast<size_t>(q)];
+      out[0] = h[0] * d0 + h[1] * d1 + h[2] * d2;
+      out[1] = h[1] * d0 + h[3] * d1 + h[4] * d2;
+      out[2] = h[2] * d0 + h[4] * d1 + h[5] * d2;
+    }
+  });
+  const int* offsets = rig.vertex_spring_offsets().data();
+  const int* incident = rig.vertex_springs().data();
+  const double shift = diagonal_shift_;
+  tbb::parallel_for(tbb::blocked_range<int>(0, n, kGrain), [&](const tbb::blocked_range<int>& range) {
+    for (int vtx = range.begin(); vtx != range.end(); ++vtx) {
+      double sum[3] = {0.0, 0.0, 0.0};
+      for (int e = offsets[vtx]; e < offsets[vtx + 1]; ++e) {
+        const int q = incident[e];
+        const double sign = a[q] == vtx ? 1.0 : -1.0;
+        const double* t = &spring_product_[3 * static_cast<size_t>(q)];
+        for (int c = 0; c < 3; ++c) sum[c] += sign * t[c];
+      }
+      for (int c = 0; c < 3; ++c) {
+        const int d = 3 * vtx + c;
+        (*product)[d] = fixed_dof_[d] ? 0.0 : sum[c] + shift * v[d];
+      }
+    }
+  });
+}
+
+bool Solver::Impl::PreconditionedCg(double forcing, SolveSummary& summary) {
+  // force_ is zero on held coordinates, and so stay every vector below.
+  const double target = forcing * force_.norm();
+  const double floor = 0.1 * options_.residual_tolerance;  // no need to solve below the tolerance
+  step_.setZero();
+  cg_residual_ = force_;
+  ApplyPreconditioner(cg_residual_, &cg_preconditioned_);
+  cg_direction_ = cg_preconditioned_;
+  double rz = cg_residual_.dot(cg_preconditioned_);
+  for (int it = 0; it < options_.max_cg_iterations; ++it) {
+    HessianProduct(cg_direction_, &cg_product_);
+    ++summary.cg_iterations;
+    const double curvature = cg_direction_.dot(cg_product_);
+    if (!(curvature > 0.0) || !std::isfinite(curvature)) return false;  // indefinite along d
+    const double alpha = rz / curvature;
+    step_ += alpha * cg_direction_;
+    cg_residual_ -= alpha * cg_product_;
+    if (cg_residual_.norm() <= target || cg_residual_.lpNorm<Eigen::Infinity>() <= floor) return true;
+    ApplyPreconditioner(cg_residual_, &cg_preconditioned_);
+    const double rz_next = cg_residual_.dot(cg_preconditioned_);
+    cg_direction_ = cg_preconditioned_ + (rz_next / rz) * cg_direction_;
+    rz = rz_next;
+  }
+  return false;
+}
+
+bool Solver::Impl::NewtonDirection(double forcing, SolveSummary& summary) {
+  if (options_.reuse_factorization && PreconditionerUsable()) {
+    const auto cg_start = std::chrono::steady_clock::now();
+    // The per-spring blocks of the last Assemble are the true Hessian's at x_ (kAbsolute: its absolute
+    // value; kProjected: the projected blocks are assembled here).
+    if (options_.hessian == HessianMode::kProjected) Assemble(x_, 0.0);
+    bool ok = PreconditionedCg(forcing, summary);
+    if (!ok && options_.hessian == HessianMode::kTrueWithProjectedFallback) {
+      // Negative curvature (compressed springs) or slow progress: the projected Hessian is SPD.
+      Assemble(x_, 0.0);
+      ok = PreconditionedCg(forcing, summary);
+      Assemble(x_, 1.0);
+    }
+    const double cg_ms = Elapsed(cg_start);
+    if (ok && step_.allFinite()) {
+      // Conjugate gradients that cost a good part of a factorization say the kept one is stale.
+      if (cg_ms > options_.refactor_time_ratio * kept_.ms) kept_.refactor_next = true;
+      return true;
+    }
+  }
+  return FactorizeAndSolve(summary);
+}
+
 void Solver::Impl::Newton(SolveSummary& summary) {
   const Rig& rig = *rig_;
   const int n = rig.num_vertices();
   const double diagonal = rig.summary().bounding_box_diagonal;
-  ChooseLinearSystem();
-  const bool try_true = options_.hessian == HessianMode::kTrueWithProjectedFallback;
   absolute_projection_ = options_.hessian == HessianMode::kAbsolute;
   int tiny_steps = 0;
   double last_step = 0.0;  // length of the last Newton step (largest coordinate change)
   double residual = Assemble(x_, 1.0);
   if (summary.newton_iterations == 0) summary.initial_residual = residual;
   double energy = Energy(x_);
+  double forcing = kMaxForcing;
+  double previous_norm = 0.0;
   summary.termination = Termination::kMaxIterations;
   for (int iteration = 0;; ++iteration) {
     if (!std::isfinite(residual) || !std::isfinite(energy)) {
@@ -532,44 +744,18 @@ void Solver::Impl::Newton(SolveSummary& summary) {
     }
     ++summary.newton_iterations;
 
-    // Newton direction: H step = f, with the true Hessian while it is positive definite.
-    const auto factor_start = std::chrono::steady_clock::now();
-    // The true Hessian converges quadratically but is indefinite where springs are compressed; when its
-    // Cholesky fails, halve the compressed springs' negative transverse stiffness, then drop it (projected
-    // Newton). The projected Hessian is still singular where the surface is flat at rest (a vertex inside a
-    // flat region moves out of plane without stretching any spring to first order), so the last resort is
-    // a Levenberg-Marquardt shift of the diagonal, growing until the factorization succeeds.
-    struct Attempt {
-      double negative_scale, shift;
-    };
-    const double k_mean = 1.0 / rig.summary().mean_rest_length;
-    const std::array<Attempt, 7> attempts = {{{1.0, 0.0},
-                                        {0.5, 0.0},
-                                        {0.0, 0.0},
-                                        {0.0, 1e-6 * k_mean},
-                                        {0.0, 1e-4 * k_mean},
-                                        {0.0, 1e-2 * k_mean},
-                                        {0.0, 1.0 * k_mean}}};
-    internal::FactorStatus status = internal::FactorStatus::kFailed;
-    for (size_t i = try_true ? 0 : 2; i < attempts.size(); ++i) {
-      const Attempt& attempt = attempts[i];
-      Assemble(x_, attempt.negative_scale, attempt.shift);
-      status = Factorize();
-      ++summary.factorizations;
-      if (attempt.negative_scale < 1.0) ++summary.projected_factorizations;
-      if (attempt.shift > 0.0) ++summary.shifted_factorizations;
-      if (status != internal::FactorStatus::kNotPositiveDefinite) break;
+    // Inexact Newton (Eisenstat-Walker choice 2): solve the linear system only as accurately as the
+    // progress of the outer iteration warrants, loosely far from the solution, tightly close to it.
+    const double norm = force_.norm();
+    if (previous_norm > 0.0) {
+      const double ratio = norm / previous_norm;
+      const double candidate = 0.9 * ratio * ratio;
+      const double safeguard = 0.9 * forcing * forcing;
+      forcing = std::min(kMaxForcing, safeguard > 0.1 ? std::max(candidate, safeguard) : candidate);
     }
-    summary.factorize_ms += Elapsed(factor_start);
-    if (status != internal::FactorStatus::kOk) {
+    previous_norm = norm;
+    if (!NewtonDirection(forcing, summary)) {
       summary.termination = Termination::kNumericalFailure;
-      summary.message = "the Hessian could not be factorized even with a diagonal shift";
-      break;
-    }
-    SolveLinear(force_, &step_);
-    if (!step_.allFinite()) {
-      summary.termination = Termination::kNumericalFailure;
-      summary.message = "the Newton step is not finite";
       break;
     }
 
@@ -650,25 +836,51 @@ std::vector<std::pair<int, Eigen::Vector3d>> Solver::Impl::HeldVertices(
   return held;
 }
 
-void Solver::Impl::PlaceStart(const Points& linear, const std::optional<internal::AnchorMotion>& motion) {
+void Solver::Impl::PlaceStart(const Points& linear, const std::optional<internal::AnchorMotion>& motion,
+                              const std::vector<double>& weights) {
   // The previous frame's equilibrium (warm start; carried along with the anchor's motion since then) or
-  // the linear blendshape.
+  // the linear blendshape. When the weights keep moving in the same direction as between the two previous
+  // frames (a sweep, a slider being dragged), the start is extrapolated along the solutions' own motion
+  // (a secant predictor): Newton then starts O(h^2) rather than O(h) away from the equilibrium.
   const Rig& rig = *rig_;
   const int n = rig.num_vertices();
   x_.resize(3 * n);
-  if (options_.warm_start && has_previous_) {
-    for (int v = 0; v < n; ++v) x_.segment<3>(3 * v) = previous_.row(v).transpose();
-    if (motion && previous_motion_) {
-      // x -> M_now(M_before^-1(x)), both about the anchor's rest centroid.
-      const Eigen::Vector3d& c = rig.anchor_centroid();
-      const Eigen::Quaterniond relative = motion->rotation * previous_motion_->rotation.inverse();
-      for (int v = 0; v < n; ++v) {
-        const Eigen::Vector3d local = x_.segment<3>(3 * v) - c - previous_motion_->offset;
-        x_.segment<3>(3 * v) = relative * local + c + motion->offset;
-      }
-    }
-  } else {
+  if (!(options_.warm_start && has_previous_)) {
     for (int v = 0; v < n; ++v) x_.segment<3>(3 * v) = linear.row(v).transpose();
+    return;
+  }
+  const Eigen::Vector3d& c = rig.anchor_centroid();
+  // Coordinates in the frame of an anchor motion (identity without an anchor), and back.
+  const auto to_local = [&](const Eigen::Vector3d& p, const std::optional<internal::AnchorMotion>& m) {
+    return m ? Eigen::Vector3d(m->rotation.inverse() * (p - c - m->offset)) : p;
+  };
+  const auto to_world = [&](const Eigen::Vector3d& l) {
+    return motion ? Eigen::Vector3d(motion->rotation * l + c + motion->offset) : l;
+  };
+  const bool anchored = motion.has_value() && previous_motion_.has_value();
+  double s = 0.0;
+  if (options_.extrapolate && has_before_ && before_weights_.size() == weights.size() && previous_weights_.size() == weights.size() &&
+      anchored == before_motion_.has_value()) {
+    double now_dot_before = 0.0, before_sq = 0.0, now_sq = 0.0;
+    for (size_t t = 0; t < weights.size(); ++t) {
+      const double now = weights[t] - previous_weights_[t];
+      const double before = previous_weights_[t] - before_weights_[t];
+      now_dot_before += now * before;
+      before_sq += before * before;
+      now_sq += now * now;
+    }
+    // Same direction (within about 8 degrees) and at most twice as far: extrapolate; else plain warm start.
+    if (before_sq > 0.0 && now_dot_before > 0.99 * std::sqrt(before_sq * now_sq)) {
+      s = std::min(2.0, now_dot_before / before_sq);
+    }
+  }
+  const std::optional<internal::AnchorMotion> none;
+  const auto& previous_frame = anchored ? previous_motion_ : none;
+  const auto& before_frame = anchored ? before_motion_ : none;
+  for (int v = 0; v < n; ++v) {
+    Eigen::Vector3d local = to_local(previous_.row(v).transpose(), previous_frame);
+    if (s > 0.0) local += s * (local - to_local(before_.row(v).transpose(), before_frame));
+    x_.segment<3>(3 * v) = anchored ? to_world(local) : local;
   }
 }
 
@@ -700,7 +912,7 @@ SolveSummary Solver::Impl::Solve(const Frame& frame, Points* positions) {
            : held.empty()                      ? BoundaryMode::kFloating
                                                : BoundaryMode::kPartiallyFixed;
   }
-  PlaceStart(linear, motion);
+  PlaceStart(linear, motion, frame.weights);
   std::fill(fixed_dof_.begin(), fixed_dof_.end(), 0);
   for (const auto& [v, p] : held) {
     x_.segment<3>(3 * v) = p;
@@ -754,11 +966,18 @@ SolveSummary Solver::Impl::Solve(const Frame& frame, Points* positions) {
     internal::AlignRigidly(linear.topRows(rig.num_surface_vertices()), &solved);
   }
   if (summary.termination != Termination::kNumericalFailure) {
+    has_before_ = has_previous_ && !previous_weights_.empty() && summary.converged();
+    if (has_before_) {
+      before_.swap(previous_);
+      before_motion_ = previous_motion_;
+      before_weights_.swap(previous_weights_);
+    }
     previous_ = solved;
     previous_motion_ = motion;
+    previous_weights_ = frame.weights;
     has_previous_ = true;
   } else {
-    has_previous_ = false;  // never warm-start from a broken state
+    has_previous_ = has_before_ = false;  // never warm-start from a broken state
   }
   *positions = solved.topRows(rig.num_surface_vertices());
   if (summary.termination == Termination::kConverged) summary.message = "converged";

@@ -80,7 +80,9 @@ class CholmodCholesky final : public SparseCholesky {
   }
 
   long FactorNonzeros() const override {
-    return factor_ == nullptr ? 0 : static_cast<long>(common_.lnz);
+    if (factor_ == nullptr) return 0;
+    // Entries of the numeric factor (supernodal: dense blocks, including their explicit zeros).
+    return static_cast<long>(factor_->is_super ? factor_->xsize : factor_->nzmax);
   }
 
  private:

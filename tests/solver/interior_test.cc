@@ -170,20 +170,61 @@ TEST(RigSummary, ReportsWhatThePapersTableReports) {
   EXPECT_LT(s.inverted_tetrahedra_in_targets, s.tetrahedra / 20);
 }
 
-TEST(Interior, FallsBackToSurfaceSpringsAndSaysWhy) {
-  // A cylinder with one end's faces flipped cannot be tetrahedralized: the rig keeps surface springs.
+namespace {
+
+// A cylinder with one end's faces flipped cannot be tetrahedralized.
+std::pair<TriangleMesh, TriangleMesh> FlippedCylinder() {
   TriangleMesh rest = LoadMesh(testing::DataPath("cylinder/cylinder.obj"));
   TriangleMesh target = LoadMesh(testing::DataPath("cylinder/poses-2_cylinder-1.obj"));
   for (Eigen::Index f = 0; f < 40; ++f) {
     std::swap(rest.faces(f, 0), rest.faces(f, 1));
     std::swap(target.faces(f, 0), target.faces(f, 1));
   }
-  auto rig = Rig::Build(rest, {target});
+  return {rest, target};
+}
+
+}  // namespace
+
+TEST(Interior, FallsBackToSurfaceSpringsAndSaysWhy) {
+  auto [rest, target] = FlippedCylinder();
+  RigOptions options;
+  options.shell = false;
+  auto rig = Rig::Build(rest, {target}, options);
   EXPECT_EQ(rig->summary().interior, "surface");
   EXPECT_THAT(rig->summary().interior_reason, HasSubstr("surface springs only"));
   EXPECT_EQ(rig->num_vertices(), 420);
   Points x;
   EXPECT_TRUE(Solver(rig).Solve({{0.5}}, &x).converged());
+}
+
+TEST(Shell, AnOpenSurfaceWithoutInteriorGetsAnInnerLayerAndStillReproducesItsTargets) {
+  auto [rest, target] = FlippedCylinder();
+  auto rig = Rig::Build(rest, {target});
+  const RigSummary& s = rig->summary();
+  EXPECT_EQ(s.interior, "shell");
+  EXPECT_THAT(s.interior_reason, HasSubstr("inner layer"));
+  EXPECT_EQ(s.shell_vertices, 420);
+  EXPECT_EQ(rig->num_vertices(), 840);
+  // Every shape of the system, the layer included, is unstressed: its own rest lengths are its lengths.
+  for (int shape = 0; shape <= 1; ++shape) {
+    const Points& x = rig->shape(shape);
+    for (int q = 0; q < rig->num_springs(); ++q) {
+      const double length = (x.row(rig->spring_a()[q]) - x.row(rig->spring_b()[q])).norm();
+      const double rest_length = rig->rest_lengths()[q] + (shape == 0 ? 0.0 : rig->rest_length_delta(0)[q]);
+      ASSERT_NEAR(length, rest_length, 1e-12) << "spring " << q << " in shape " << shape;
+    }
+  }
+  // The layer sits one mean edge length inside: every inner vertex is that far from its surface vertex.
+  const Points& x = rig->shape(0);
+  const double offset = (x.row(0) - x.row(420)).norm();
+  for (int v = 1; v < 420; ++v) EXPECT_NEAR((x.row(v) - x.row(420 + v)).norm(), offset, 1e-9 * offset);
+  Solver solver(rig);
+  Points solved;
+  ASSERT_TRUE(solver.Solve({{1.0}}, &solved).converged());
+  const double diagonal = BoundingBoxDiagonal(rest.vertices);
+  EXPECT_LT((solved - target.vertices).rowwise().norm().maxCoeff(), 1e-6 * diagonal);
+  ASSERT_TRUE(solver.Solve({{0.0}}, &solved).converged());
+  EXPECT_LT((solved - rest.vertices).rowwise().norm().maxCoeff(), 1e-6 * diagonal);
 }
 
 TEST(Pins, APinnedVertexSitsExactlyAtItsPinAndItsNeighboursFollow) {

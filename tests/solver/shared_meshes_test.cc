@@ -54,9 +54,9 @@ INSTANTIATE_TEST_SUITE_P(
         SharedCase{"horse", "horse/horse-reference.obj", "horse/horse-01.obj", "capped", "holes closed"},
         // About 200 self-intersecting triangle pairs: TetGen refuses; surface springs, and why.
         SharedCase{"cat", "cat/cat-reference.obj", "cat/cat-01.obj", "surface", "intersects itself"},
-        // An open mask (rim, mouth, eyes): its caps cut through the face; surface springs, and why.
-        SharedCase{"face", "face6706/generic_neutral_mesh.obj", "face6706/jawOpen.obj", "surface",
-                   "surface springs only"}),
+        // An open mask (rim, mouth, eyes): its caps cut through the face; a shell (inner layer), and why.
+        SharedCase{"face", "face6706/generic_neutral_mesh.obj", "face6706/jawOpen.obj", "shell",
+                   "inner layer"}),
     [](const ::testing::TestParamInfo<SharedCase>& param) { return std::string(param.param.name); });
 
 }  // namespace

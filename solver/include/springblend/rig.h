@@ -69,6 +69,18 @@ struct RigOptions {
   bool anchor = true;
   int anchor_size = 8;
   std::optional<std::array<double, 3>> anchor_center;
+  // Thickness for open surfaces that get no interior (sheets such as a face mask, whose caps TetGen
+  // refuses): an inner layer of vertices offset against each shape's own vertex normals by
+  // shell_thickness mean edge lengths, joined to the surface by springs along, across and beside every
+  // edge (a prism shell). A sheet held only by edge and bending springs is floppy out of its plane (slow,
+  // and with several equilibria); the shell makes it resist bending. Each target's layer is placed by its
+  // own normals, so targets are still reproduced exactly. Range of the thickness (0, 100].
+  bool shell = true;
+  double shell_thickness = 1.0;
+  // An open surface that gets no interior: also hold the vertices of its outer rim (the largest loop of
+  // boundary edges; holes such as a mouth or eyes stay free) on the linear blend, as a face mask is
+  // stitched to the head it belongs to.
+  bool hold_outer_rim = false;
 
   // Throws Error(kInvalidInput) naming the field that is out of range.
   void Validate() const;
@@ -93,15 +105,17 @@ struct RigSummary {
   int springs = 0;
   int springs_by_kind[kSpringKindCount] = {0, 0, 0};
   int interior_vertices = 0;  // TetGen's Steiner points inside the volume
+  int shell_vertices = 0;     // the inner layer of a shell (RigOptions::shell)
   int cap_vertices = 0;       // one per hole closed before tetrahedralizing
   int anchor_vertices = 0;
   int tetrahedra = 0;
-  std::string interior;         // "closed", "capped" or "surface"
+  std::string interior;         // "closed", "capped", "shell" or "surface"
   std::string interior_reason;  // why, in words
   int unconverged_placements = 0;  // targets whose interior placement solve did not converge
   int inverted_tetrahedra_in_targets = 0;  // summed over the targets' placed interiors
   int static_vertices = 0;  // detected automatically
   int user_fixed_vertices = 0;
+  int rim_vertices = 0;  // held by RigOptions::hold_outer_rim (beyond static and user-fixed ones)
   BoundaryMode boundary_mode = BoundaryMode::kFloating;
   int degenerate_faces = 0;  // faces of (near) zero area in any shape; reported, still used
   int first_degenerate_face = -1;
@@ -181,6 +195,8 @@ class Rig {
   std::vector<int> anchor_;
   Eigen::Vector3d anchor_centroid_ = Eigen::Vector3d::Zero();
   std::vector<internal::AnchorMotion> anchor_motions_;
+  double shell_offset_ = 0.0;
+  Points shell_normals_rest_;
   std::vector<int> spring_a_, spring_b_;
   std::vector<SpringKind> spring_kind_;
   std::vector<double> rest_length0_;

@@ -49,12 +49,26 @@ struct SolveOptions {
   // Backtracking line search halvings per Newton step. Range [1, 60].
   int max_line_search_steps = 40;
   HessianMode hessian = HessianMode::kTrueWithProjectedFallback;
+  // Reuse a numeric factorization across Newton iterations and frames: each Newton step is then solved by
+  // conjugate gradients preconditioned with the last factorization (inexact Newton, method.md section 4),
+  // and the Hessian is refactored only when that stops paying off. false: a fresh factorization and a
+  // direct solve in every Newton iteration (the paper's method; the benchmark's baseline).
+  bool reuse_factorization = true;
+  // Conjugate-gradient iterations per Newton step before giving up on the old factorization and
+  // refactoring. Range [1, 10000].
+  int max_cg_iterations = 40;
+  // Refactor before the next Newton step when the conjugate gradients of this one took longer than this
+  // fraction of the last factorization's time. Range (0, 100].
+  double refactor_time_ratio = 0.5;
   // No vertex moves further than this fraction of the mean rest length in one Newton step, so a step
   // cannot carry a vertex through its neighbours into an inverted equilibrium. Range (0, 1000].
-  double max_step_fraction = 0.5;
+  double max_step_fraction = 2.0;
   // Start each frame from the previous frame's solution (the paper's protocol). When false, or for the
   // first frame, the solve starts from the linear blendshape.
   bool warm_start = true;
+  // With warm_start: when the weights keep moving in the direction of the two previous frames (a sweep, a
+  // dragged slider), extrapolate the start along the previous solutions' motion (a secant predictor).
+  bool extrapolate = true;
   // Contact rounds per frame (solve, catch penetrating vertices, solve again) before giving up. [1, 1000]
   int max_contact_rounds = 30;
   // Contact vertices are held this fraction of the diagonal outside the obstacle's surface. [0, 0.01]
@@ -83,6 +97,7 @@ struct SolveSummary {
   int projected_factorizations = 0;  // factorizations with compressed springs' curvature reduced
   int shifted_factorizations = 0;    // factorizations that needed a Levenberg-Marquardt diagonal shift
   int line_search_halvings = 0;
+  int cg_iterations = 0;   // preconditioned conjugate-gradient iterations (reuse_factorization)
   double initial_residual = 0.0;
   double residual = 0.0;  // final largest force on a free degree of freedom (strain units)
   double last_step = 0.0;  // last Newton step's largest coordinate change, fraction of the diagonal
