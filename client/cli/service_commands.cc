@@ -256,7 +256,7 @@ std::vector<std::pair<std::string, Runner>> AddServiceCommands(CLI::App& app) {
   solve->add_option("--collider", args->colliders, "an obstacle (as for blend); repeatable");
   solve->add_option("--pin", args->pins, "VERTEX:x,y,z in every frame; repeatable");
   solve->add_option("--out", args->out, "output directory")->required();
-  solve->add_option("--tolerance", args->tolerance, "residual tolerance (server default 1e-9)");
+  solve->add_option("--tolerance", args->tolerance, "residual tolerance (server default 1e-6)");
   solve->add_option("--max-iterations", args->max_iterations, "Newton iterations per frame");
   solve->add_flag("--linear", args->linear, "the linear blendshape");
   solve->add_flag("--normals", args->normals, "ask for normals too");

@@ -66,8 +66,8 @@ void SolveOptions::Validate() const {
   if (max_cg_iterations < 1 || max_cg_iterations > 10000) {
     fail(fmt::format("solve option max_cg_iterations = {} is outside [1, 10000]", max_cg_iterations));
   }
-  if (!(refactor_time_ratio > 0.0 && refactor_time_ratio <= 100.0)) {
-    fail(fmt::format("solve option refactor_time_ratio = {} is outside (0, 100]", refactor_time_ratio));
+  if (!(refactor_cost_ratio > 0.0 && refactor_cost_ratio <= 100.0)) {
+    fail(fmt::format("solve option refactor_cost_ratio = {} is outside (0, 100]", refactor_cost_ratio));
   }
 }
 
@@ -281,7 +281,7 @@ class Solver::Impl {
   struct KeptFactor {
     bool valid = false;
     bool reduced = false;  // in reduced_ (its `held` mask) rather than in cholesky_
-    double ms = 0.0;       // how long it took to compute
+    double solves_per_factorization = 1.0;  // its cost in solves
     size_t attempt = 0;    // the rung of the factorization ladder that succeeded
     bool refactor_next = false;  // the last conjugate gradients cost too much: refactor at the next step
   } kept_;
@@ -585,7 +585,8 @@ bool Solver::Impl::FactorizeAndSolve(SolveSummary& summary) {
     summary.message = "the Hessian could not be factorized even with a diagonal shift";
     return false;
   }
-  kept_ = KeptFactor{true, use_reduced_, ms, used, false};
+  const internal::SparseCholesky& factor = use_reduced_ ? *reduced_->cholesky : *cholesky_;
+  kept_ = KeptFactor{true, use_reduced_, factor.SolvesPerFactorization(), used, false};
   SolveLinear(force_, &step_);
   // Leave the per-spring blocks of the true Hessian at x_ for later matrix-free products.
   Assemble(x_, 1.0);
@@ -691,7 +692,7 @@ bool Solver::Impl::PreconditionedCg(double forcing, SolveSummary& summary) {
 
 bool Solver::Impl::NewtonDirection(double forcing, SolveSummary& summary) {
   if (options_.reuse_factorization && PreconditionerUsable()) {
-    const auto cg_start = std::chrono::steady_clock::now();
+    const int cg_before = summary.cg_iterations;
     // The per-spring blocks of the last Assemble are the true Hessian's at x_ (kAbsolute: its absolute
     // value; kProjected: the projected blocks are assembled here).
     if (options_.hessian == HessianMode::kProjected) Assemble(x_, 0.0);
@@ -702,10 +703,10 @@ bool Solver::Impl::NewtonDirection(double forcing, SolveSummary& summary) {
       ok = PreconditionedCg(forcing, summary);
       Assemble(x_, 1.0);
     }
-    const double cg_ms = Elapsed(cg_start);
     if (ok && step_.allFinite()) {
       // Conjugate gradients that cost a good part of a factorization say the kept one is stale.
-      if (cg_ms > options_.refactor_time_ratio * kept_.ms) kept_.refactor_next = true;
+      const double solves = summary.cg_iterations - cg_before;
+      if (solves > options_.refactor_cost_ratio * kept_.solves_per_factorization) kept_.refactor_next = true;
       return true;
     }
   }

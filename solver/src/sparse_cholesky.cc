@@ -4,6 +4,7 @@
 
 #include <Eigen/Sparse>
 #include <Eigen/SparseCholesky>
+#include <algorithm>
 #include <cstring>
 #include <vector>
 
@@ -40,11 +41,13 @@ class CholmodCholesky final : public SparseCholesky {
                   "CHOLMOD could not analyse the Hessian pattern (status " +
                       std::to_string(common_.status) + ")");
     }
+    solves_per_factorization_ = common_.lnz > 0 ? std::max(1.0, common_.fl / (4.0 * common_.lnz)) : 1.0;
   }
 
   std::unique_ptr<SparseCholesky> Clone() const override {
     auto copy = std::make_unique<CholmodCholesky>();
     copy->pattern_ = pattern_;
+    copy->solves_per_factorization_ = solves_per_factorization_;
     // The analysed factor is only read here, so clones may be made concurrently from one rig.
     copy->factor_ = cholmod_copy_factor(factor_, &copy->common_);
     if (copy->factor_ == nullptr) throw Error(ErrorCode::kInternal, "cholmod_copy_factor failed");
@@ -84,6 +87,7 @@ class CholmodCholesky final : public SparseCholesky {
     // Entries of the numeric factor (supernodal: dense blocks, including their explicit zeros).
     return static_cast<long>(factor_->is_super ? factor_->xsize : factor_->nzmax);
   }
+  double SolvesPerFactorization() const override { return solves_per_factorization_; }
 
  private:
   cholmod_sparse View(const double* values) const {
@@ -107,6 +111,7 @@ class CholmodCholesky final : public SparseCholesky {
   mutable cholmod_common common_{};
   const SymmetricPattern* pattern_ = nullptr;
   cholmod_factor* factor_ = nullptr;
+  double solves_per_factorization_ = 1.0;
   cholmod_dense* solution_ = nullptr;
   cholmod_dense* work_y_ = nullptr;
   cholmod_dense* work_e_ = nullptr;
@@ -136,6 +141,7 @@ class EigenCholesky final : public SparseCholesky {
     Eigen::Map<Eigen::VectorXd>(x, pattern_->n) = result;
   }
   long FactorNonzeros() const override { return 0; }
+  double SolvesPerFactorization() const override { return 20.0; }  // a typical figure; not analysed here
 
  private:
   using Matrix = Eigen::SparseMatrix<double, Eigen::ColMajor, int>;

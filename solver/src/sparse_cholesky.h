@@ -34,6 +34,9 @@ class SparseCholesky {
   virtual void Solve(const double* b, double* x) = 0;
   // Nonzeros of the factor L (after analysis).
   virtual long FactorNonzeros() const = 0;
+  // About how many solves with the factor cost as much as one numeric factorization (from the analysis's
+  // flop counts; a solve reads L twice). Deterministic, unlike a clock.
+  virtual double SolvesPerFactorization() const = 0;
 };
 
 }  // namespace springblend::internal

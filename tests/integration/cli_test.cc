@@ -62,7 +62,7 @@ TEST(CliBlend, SolvesOneFrameAndPrintsItsSummary) {
   EXPECT_GT(j["springs"].get<int>(), 2400);
   EXPECT_EQ(j["converged"], true);
   EXPECT_GT(j["newton_iterations"].get<int>(), 0);
-  EXPECT_LE(j["residual"].get<double>(), 1e-9);
+  EXPECT_LE(j["residual"].get<double>(), 1e-6);  // SolveOptions' default tolerance
   EXPECT_GT(j["solve_ms"].get<double>(), 0.0);
   const TriangleMesh out = LoadMesh(dir.File("out.obj"));
   EXPECT_EQ(out.vertices.rows(), 420);

@@ -74,7 +74,8 @@ struct RigOptions {
   // shell_thickness mean edge lengths, joined to the surface by springs along, across and beside every
   // edge (a prism shell). A sheet held only by edge and bending springs is floppy out of its plane (slow,
   // and with several equilibria); the shell makes it resist bending. Each target's layer is placed by its
-  // own normals, so targets are still reproduced exactly. Range of the thickness (0, 100].
+  // own normals, so targets are still reproduced exactly; the layer replaces the bending springs.
+  // Range of the thickness (0, 100].
   bool shell = true;
   double shell_thickness = 1.0;
   // An open surface that gets no interior: also hold the vertices of its outer rim (the largest loop of

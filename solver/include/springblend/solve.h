@@ -40,10 +40,10 @@ const char* ToString(HessianMode mode);
 struct SolveOptions {
   // Converged when the largest force on any free degree of freedom is at most this. Forces are in units of
   // strain (k = 1 / rest length), so the tolerance does not depend on the mesh's scale. Range (0, 1).
-  double residual_tolerance = 1e-9;
+  double residual_tolerance = 1e-6;
   // ...and the last Newton step (largest coordinate change) was at most this fraction of the bounding-box
   // diagonal. Both must hold: where the system is soft a small force alone does not mean a small error.
-  double step_tolerance = 1e-8;
+  double step_tolerance = 1e-5;
   // Newton iterations per frame before giving up (the frame then reports kMaxIterations). Range [1, 10000].
   int max_iterations = 200;
   // Backtracking line search halvings per Newton step. Range [1, 60].
@@ -57,9 +57,10 @@ struct SolveOptions {
   // Conjugate-gradient iterations per Newton step before giving up on the old factorization and
   // refactoring. Range [1, 10000].
   int max_cg_iterations = 40;
-  // Refactor before the next Newton step when the conjugate gradients of this one took longer than this
-  // fraction of the last factorization's time. Range (0, 100].
-  double refactor_time_ratio = 0.5;
+  // Refactor before the next Newton step when the conjugate gradients of this one cost more than this
+  // fraction of a factorization (costs from the symbolic analysis's flop counts, so the decision, and the
+  // result, do not depend on the machine's load). Range (0, 100].
+  double refactor_cost_ratio = 0.5;
   // No vertex moves further than this fraction of the mean rest length in one Newton step, so a step
   // cannot carry a vertex through its neighbours into an inverted equilibrium. Range (0, 1000].
   double max_step_fraction = 2.0;
