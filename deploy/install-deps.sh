@@ -1,6 +1,8 @@
 #!/usr/bin/env bash
 # Installs everything springblend needs to build, test and run, from Debian 12's archive only.
 # Idempotent: when every package is already present it touches nothing and returns at once.
+#   bash deploy/install-deps.sh         build, test and run
+#   bash deploy/install-deps.sh fuzz    also clang and its libFuzzer runtime (fuzz/run.sh; not in the image)
 set -euo pipefail
 
 packages=(
@@ -12,6 +14,12 @@ packages=(
   libgtest-dev libgmock-dev libbenchmark-dev
   openssl
 )
+for group in "$@"; do
+  case "$group" in
+    fuzz) packages+=(clang libclang-rt-14-dev) ;;
+    *) echo "install-deps: unknown group '$group' (known: fuzz)" >&2; exit 2 ;;
+  esac
+done
 
 missing=()
 for p in "${packages[@]}"; do

@@ -2,8 +2,11 @@
 // a small rig, request builders and status probes.
 #pragma once
 
+#include <arpa/inet.h>
 #include <gtest/gtest.h>
+#include <netinet/in.h>
 #include <signal.h>
+#include <sys/socket.h>
 #include <sys/wait.h>
 #include <unistd.h>
 
@@ -60,13 +63,20 @@ class ServerProcess {
     pid_ = -1;
   }
   pid_t pid() const { return pid_; }
+  // SIGTERM, then the exit code. A server that started must exit 0: anything else (a crash, or a sanitizer
+  // report, which sanitized builds turn into an exit code) fails the test.
   int Stop() {
     if (pid_ <= 0) return -1;
     kill(pid_, SIGTERM);
     int status = 0;
     waitpid(pid_, &status, 0);
     pid_ = -1;
-    return WIFEXITED(status) ? WEXITSTATUS(status) : -1;
+    const int code = WIFEXITED(status) ? WEXITSTATUS(status) : -1;
+    if (!address_.empty()) {
+      EXPECT_EQ(code, 0) << "the server at " << address_ << " did not exit cleanly"
+                         << (WIFSIGNALED(status) ? " (signal " + std::to_string(WTERMSIG(status)) + ")" : "");
+    }
+    return code;
   }
   const std::string& address() const { return address_; }
 
@@ -108,6 +118,25 @@ std::string MessageOf(const std::function<void()>& call) {
     return e.what();
   }
   return "";
+}
+
+// GET a path from 127.0.0.1:port; returns the whole response.
+inline std::string HttpGet(int port, const std::string& path) {
+  const int fd = socket(AF_INET, SOCK_STREAM, 0);
+  sockaddr_in address{};
+  address.sin_family = AF_INET;
+  address.sin_port = htons(static_cast<std::uint16_t>(port));
+  inet_pton(AF_INET, "127.0.0.1", &address.sin_addr);
+  std::string response;
+  if (connect(fd, reinterpret_cast<sockaddr*>(&address), sizeof(address)) == 0) {
+    const std::string request = "GET " + path + " HTTP/1.0\r\n\r\n";
+    send(fd, request.data(), request.size(), 0);
+    char buffer[4096];
+    ssize_t n;
+    while ((n = recv(fd, buffer, sizeof(buffer), 0)) > 0) response.append(buffer, static_cast<size_t>(n));
+  }
+  close(fd);
+  return response;
 }
 
 }  // namespace springblend::testing
