@@ -109,9 +109,12 @@ TEST(LoadTest, ManyConcurrentStreamsRunWithoutErrorsInBoundedMemory) {
   EXPECT_EQ(report.frames, static_cast<long long>(report.requests) * load.frames_per_request);
   EXPECT_GT(report.p50_ms, 0.0);
   EXPECT_LE(report.p50_ms, report.p99_ms);
+#if !defined(__SANITIZE_ADDRESS__)
   // Memory is flat once warm: the last third of the run peaks no more than 64 MiB above the first third.
+  // (Under ASan freed memory fills its quarantine first, so RSS climbs there by design.)
   EXPECT_LT(rss.Max(2.0 / 3, 1.0), rss.Max(0.0, 1.0 / 3) + 64.0);
   EXPECT_LT(rss.Max(), 1024.0);
+#endif
 }
 
 TEST(LoadTest, RefusesANonLoopbackAddress) {
