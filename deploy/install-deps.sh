@@ -1,8 +1,10 @@
 #!/usr/bin/env bash
 # Installs everything springblend needs to build, test and run, from Debian 12's archive only.
 # Idempotent: when every package is already present it touches nothing and returns at once.
-#   install-deps.sh            everything: build, tests (Python client, headless Blender) and benchmarks
-#   install-deps.sh --build    only what building the C++ server and CLI needs (the container image)
+#   bash deploy/install-deps.sh          build, tests (with the Python client's and headless Blender's) and the
+#                                        benchmark's plot
+#   bash deploy/install-deps.sh --build  only what building the C++ server and CLI needs (the container image)
+#   bash deploy/install-deps.sh fuzz     also clang and its libFuzzer runtime (fuzz/run.sh; not in the image)
 set -euo pipefail
 
 packages=(
@@ -12,8 +14,17 @@ packages=(
   libspdlog-dev libfmt-dev libcli11-dev nlohmann-json3-dev libtbb-dev
   libgrpc++-dev libprotobuf-dev protobuf-compiler protobuf-compiler-grpc libssl-dev
   libgtest-dev libgmock-dev libbenchmark-dev
+  openssl
 )
-if [ "${1:-}" != "--build" ]; then
+build_only=0
+for group in "$@"; do
+  case "$group" in
+    --build) build_only=1 ;;
+    fuzz) packages+=(clang libclang-rt-14-dev) ;;
+    *) echo "install-deps: unknown group '$group' (known: --build, fuzz)" >&2; exit 2 ;;
+  esac
+done
+if [ "$build_only" -eq 0 ]; then
   # The DCC clients' tests (Python package, headless Blender) and the benchmark's plot.
   packages+=(python3 python3-grpcio python3-numpy python3-protobuf blender gnuplot-nox)
 fi

@@ -57,6 +57,7 @@ class Reader {
   }
   void GetBytes(void* out, size_t n) {
     Need(n);
+    if (n == 0) return;  // out may be null (an empty matrix), and memcpy(nullptr, ..., 0) is undefined
     std::memcpy(out, in_.data() + at_, n);
     at_ += n;
   }

@@ -18,6 +18,7 @@
 
 #include "character_store.h"
 #include "metrics.h"
+#include "security.h"
 #include "service.h"
 #include "solver_pool.h"
 #include "springblend/error.h"
@@ -37,6 +38,9 @@ int main(int argc, char** argv) {
   std::string replica;
   int drain_seconds = 30;
   std::string metrics_listen;
+  TlsOptions tls;
+  std::vector<std::string> tokens;
+  std::string tokens_file;
   app.add_option("--listen", listen, "address:port to serve on (port 0 picks a free one)");
   app.add_option("--cache-dir", cache_dir, "directory of uploaded characters, shared by replicas (default: "
                                            "$XDG_CACHE_HOME/springblend or ~/.cache/springblend)");
@@ -49,6 +53,14 @@ int main(int argc, char** argv) {
   app.add_option("--replica-name", replica, "name reported in each frame's served_by (default: host name)");
   app.add_option("--drain-seconds", drain_seconds, "on SIGTERM, how long in-flight streams may finish");
   app.add_option("--metrics", metrics_listen, "serve Prometheus metrics at http://ADDRESS:PORT/metrics (off when empty)");
+  app.add_option("--tls-cert", tls.cert_file, "PEM certificate chain: serve TLS instead of plaintext");
+  app.add_option("--tls-key", tls.key_file, "PEM private key of --tls-cert");
+  app.add_option("--tls-client-ca", tls.client_ca_file,
+                 "PEM CA bundle: require every client to present a certificate it signed (mutual TLS)");
+  app.add_option("--token", tokens, "a token with the full role (upload, delete, solve); repeatable. "
+                                    "Prefer --tokens-file: flags show in ps");
+  app.add_option("--tokens-file", tokens_file, "file of 'ROLE TOKEN' lines (ROLE: full or solve); with any "
+                                               "token, calls without an accepted one are refused");
   CLI11_PARSE(app, argc, argv);
 
   // Logs go to stderr; stdout carries only the "listening on" line, for scripts and tests to read.
@@ -74,10 +86,14 @@ int main(int argc, char** argv) {
   pthread_sigmask(SIG_BLOCK, &signals, nullptr);
 
   try {
+    TokenAuthenticator auth;
+    for (const auto& t : tokens) auth.Add(t, Role::kFull);
+    if (!tokens_file.empty()) auth.AddFile(tokens_file);
+    const std::shared_ptr<grpc::ServerCredentials> credentials = MakeServerCredentials(tls);
     CharacterStore store({cache_dir, memory_mb << 20});
     SolverPool pool(workers, queue);
     Metrics metrics;
-    ServiceContext context{store, pool, limits, replica, metrics};
+    ServiceContext context{store, pool, limits, replica, metrics, auth};
     std::unique_ptr<MetricsEndpoint> metrics_endpoint;
     if (!metrics_listen.empty()) {
       metrics_endpoint = std::make_unique<MetricsEndpoint>(metrics_listen, [&] {
@@ -108,7 +124,7 @@ int main(int argc, char** argv) {
     grpc::reflection::InitProtoReflectionServerBuilderPlugin();
     grpc::ServerBuilder builder;
     int port = 0;
-    builder.AddListeningPort(listen, grpc::InsecureServerCredentials(), &port);
+    builder.AddListeningPort(listen, credentials, &port);
     builder.RegisterService(&characters);
     builder.RegisterService(&solves);
     builder.SetMaxReceiveMessageSize(64 << 20);
@@ -120,6 +136,13 @@ int main(int argc, char** argv) {
     const std::string host = listen.substr(0, listen.rfind(':'));
     std::cout << "springblend-server listening on " << host << ":" << port << std::endl;
     spdlog::info("listening on {}:{} with {} solver threads, cache {}", host, port, workers, cache_dir);
+    spdlog::info("transport: {}; {}", tls.cert_file.empty()         ? "plaintext"
+                                      : tls.client_ca_file.empty() ? "TLS"
+                                                                   : "mutual TLS",
+                 auth.enabled() ? fmt::format("{} accepted tokens", auth.size()) : std::string("no tokens: open"));
+    if (auth.enabled() && tls.cert_file.empty() && host != "127.0.0.1" && host != "localhost" && host != "[::1]") {
+      spdlog::warn("tokens travel in the clear on {}: add --tls-cert and --tls-key", host);
+    }
 
     std::thread stopper([&] {
       int signal_number = 0;

@@ -21,6 +21,8 @@ const char* CodeName(grpc::StatusCode code) {
     case grpc::StatusCode::DEADLINE_EXCEEDED: return "DEADLINE_EXCEEDED";
     case grpc::StatusCode::NOT_FOUND: return "NOT_FOUND";
     case grpc::StatusCode::RESOURCE_EXHAUSTED: return "RESOURCE_EXHAUSTED";
+    case grpc::StatusCode::UNAUTHENTICATED: return "UNAUTHENTICATED";
+    case grpc::StatusCode::PERMISSION_DENIED: return "PERMISSION_DENIED";
     case grpc::StatusCode::INTERNAL: return "INTERNAL";
     default: return "OTHER";
   }
@@ -29,11 +31,34 @@ const char* CodeName(grpc::StatusCode code) {
 const grpc::Status kQueueFull(grpc::StatusCode::RESOURCE_EXHAUSTED,
                               "the server's solve queue is full; retry later or add replicas");
 
-// Runs `work` on the pool and finishes the unary call with its status; refuses at once when the queue is full.
+// The token check every handler makes before any work; a refusal is counted like any other answer.
+std::optional<grpc::Status> Refused(grpc::CallbackServerContext* call, ServiceContext& context, const char* method,
+                                    Access needed) {
+  const AuthVerdict verdict = context.auth.Check(*call, needed);
+  if (verdict.allowed()) return std::nullopt;
+  const grpc::Status status = ToStatus(verdict);
+  context.metrics.CountRequest(method, CodeName(status.error_code()));
+  return status;
+}
+
+// A streaming call refused before any work: it answers with the status and goes.
+template <typename Reactor>
+class Refusal final : public Reactor {
+ public:
+  explicit Refusal(const grpc::Status& status) { this->Finish(status); }
+  void OnDone() override { delete this; }
+};
+
+// Runs `work` on the pool and finishes the unary call with its status; refuses at once when the token does not
+// allow the call or the queue is full.
 template <typename Work>
 grpc::ServerUnaryReactor* OnPool(grpc::CallbackServerContext* call, ServiceContext& context, const char* method,
-                                 Work work) {
+                                 Access needed, Work work) {
   grpc::ServerUnaryReactor* reactor = call->DefaultReactor();
+  if (auto refused = Refused(call, context, method, needed)) {
+    reactor->Finish(*refused);
+    return reactor;
+  }
   Metrics& metrics = context.metrics;
   const bool queued = context.pool.TrySubmit([reactor, &metrics, method, work = std::move(work)]() mutable {
     grpc::Status status;
@@ -234,7 +259,7 @@ class InteractiveReactor final : public grpc::ServerBidiReactor<v1::InteractiveR
     }
     if (!started_) {
       if (!incoming_.has_start()) {
-        FinishLocked(lock, {grpc::StatusCode::INVALID_ARGUMENT, "the first message must be a start message"});
+        Refuse(lock, {grpc::StatusCode::INVALID_ARGUMENT, "the first message must be a start message"});
         return;
       }
       started_ = true;
@@ -244,7 +269,7 @@ class InteractiveReactor final : public grpc::ServerBidiReactor<v1::InteractiveR
       pending_ = incoming_.frame();
       pending_index_ = received_++;
     } else {
-      FinishLocked(lock, {grpc::StatusCode::INVALID_ARGUMENT, "only the first message may be a start message"});
+      Refuse(lock, {grpc::StatusCode::INVALID_ARGUMENT, "only the first message may be a start message"});
       return;
     }
     if (!job_running_ && (pending_ || !setup_requested_)) {
@@ -280,6 +305,16 @@ class InteractiveReactor final : public grpc::ServerBidiReactor<v1::InteractiveR
   void FinishIfIdle(std::unique_lock<std::mutex>& lock, const grpc::Status& status) {
     if (!job_running_ && !pending_) FinishLocked(lock, status);
   }
+  // A bad message: finish now, or, while a job runs (it may still use this reactor), let the job finish
+  // with the refusal when it stops. Reading stops either way.
+  void Refuse(std::unique_lock<std::mutex>& lock, const grpc::Status& status) {
+    pending_.reset();
+    if (job_running_) {
+      refused_ = status;
+    } else {
+      FinishLocked(lock, status);
+    }
+  }
 
   void Work() {
     std::unique_lock lock(mutex_);
@@ -294,7 +329,7 @@ class InteractiveReactor final : public grpc::ServerBidiReactor<v1::InteractiveR
         return;
       }
     }
-    while (pending_ && !gate_.cancelled) {
+    while (pending_ && !gate_.cancelled && !refused_) {
       const v1::FrameRequest request = std::move(*pending_);
       const std::uint32_t index = pending_index_;
       pending_.reset();
@@ -320,7 +355,9 @@ class InteractiveReactor final : public grpc::ServerBidiReactor<v1::InteractiveR
       gate_.Write(lock, [this] { StartWrite(&out_); });
     }
     job_running_ = false;
-    if (gate_.cancelled) {
+    if (refused_) {
+      FinishLocked(lock, *refused_);
+    } else if (gate_.cancelled) {
       pending_.reset();
       FinishLocked(lock, {grpc::StatusCode::CANCELLED, "the client cancelled the session"});
     } else if (reads_done_) {
@@ -362,6 +399,7 @@ class InteractiveReactor final : public grpc::ServerBidiReactor<v1::InteractiveR
   std::unique_ptr<Solver> solver_;
   v1::SolvedFrame out_;
   std::optional<v1::FrameRequest> pending_;
+  std::optional<grpc::Status> refused_;  // a bad message arrived while a job ran
   std::uint32_t pending_index_ = 0, received_ = 0, dropped_ = 0;
   WriteGate gate_;
   std::mutex& mutex_ = gate_.mutex;  // one lock guards the session's state and its writes
@@ -372,13 +410,16 @@ class InteractiveReactor final : public grpc::ServerBidiReactor<v1::InteractiveR
 
 grpc::ServerReadReactor<v1::UploadChunk>* CharacterServiceImpl::UploadCharacter(grpc::CallbackServerContext* call,
                                                                                 v1::Character* response) {
+  if (auto refused = Refused(call, context_, "UploadCharacter", Access::kWrite)) {
+    return new Refusal<grpc::ServerReadReactor<v1::UploadChunk>>(*refused);
+  }
   return new UploadReactor(call, context_, response);
 }
 
 grpc::ServerUnaryReactor* CharacterServiceImpl::GetCharacter(grpc::CallbackServerContext* call,
                                                              const v1::GetCharacterRequest* request,
                                                              v1::Character* response) {
-  return OnPool(call, context_, "GetCharacter", [this, request, response]() -> grpc::Status {
+  return OnPool(call, context_, "GetCharacter", Access::kRead, [this, request, response]() -> grpc::Status {
     const auto entry = context_.store.Get(request->id());
     if (!entry) return NotFound(request->id());
     *response = ToProto(*entry, true);
@@ -394,7 +435,7 @@ grpc::ServerUnaryReactor* CharacterServiceImpl::GetCharacter(grpc::CallbackServe
 grpc::ServerUnaryReactor* CharacterServiceImpl::ListCharacters(grpc::CallbackServerContext* call,
                                                                const v1::ListCharactersRequest*,
                                                                v1::ListCharactersResponse* response) {
-  return OnPool(call, context_, "ListCharacters", [this, response]() -> grpc::Status {
+  return OnPool(call, context_, "ListCharacters", Access::kRead, [this, response]() -> grpc::Status {
     for (const auto& listed : context_.store.List()) {
       v1::Character* c = response->add_characters();
       if (listed.entry) {
@@ -412,7 +453,7 @@ grpc::ServerUnaryReactor* CharacterServiceImpl::ListCharacters(grpc::CallbackSer
 grpc::ServerUnaryReactor* CharacterServiceImpl::DeleteCharacter(grpc::CallbackServerContext* call,
                                                                 const v1::DeleteCharacterRequest* request,
                                                                 v1::DeleteCharacterResponse*) {
-  return OnPool(call, context_, "DeleteCharacter", [this, request]() -> grpc::Status {
+  return OnPool(call, context_, "DeleteCharacter", Access::kWrite, [this, request]() -> grpc::Status {
     if (!context_.store.Delete(request->id())) return NotFound(request->id());
     spdlog::info("deleted {}", request->id().substr(0, 12));
     return grpc::Status::OK;
@@ -421,11 +462,17 @@ grpc::ServerUnaryReactor* CharacterServiceImpl::DeleteCharacter(grpc::CallbackSe
 
 grpc::ServerBidiReactor<v1::InteractiveRequest, v1::SolvedFrame>* SolveServiceImpl::Interactive(
     grpc::CallbackServerContext* call) {
+  if (auto refused = Refused(call, context_, "Interactive", Access::kRead)) {
+    return new Refusal<grpc::ServerBidiReactor<v1::InteractiveRequest, v1::SolvedFrame>>(*refused);
+  }
   return new InteractiveReactor(call, context_);
 }
 
 grpc::ServerWriteReactor<v1::SolvedFrame>* SolveServiceImpl::Solve(grpc::CallbackServerContext* call,
                                                                    const v1::SolveRequest* request) {
+  if (auto refused = Refused(call, context_, "Solve", Access::kRead)) {
+    return new Refusal<grpc::ServerWriteReactor<v1::SolvedFrame>>(*refused);
+  }
   return new SolveReactor(call, context_, request);
 }
 

@@ -8,6 +8,7 @@
 #include "character_store.h"
 #include "convert.h"
 #include "metrics.h"
+#include "security.h"
 #include "solver_pool.h"
 #include "springblend/v1/springblend.grpc.pb.h"
 
@@ -19,6 +20,7 @@ struct ServiceContext {
   Limits limits;
   std::string replica_name;  // reported in every frame's served_by
   Metrics& metrics;
+  const TokenAuthenticator& auth;  // checked first by every handler; without tokens every call is allowed
 };
 
 class CharacterServiceImpl final : public v1::CharacterService::CallbackService {

@@ -16,4 +16,14 @@ grpc::Status ToStatus(const std::exception& error) {
   return {grpc::StatusCode::INTERNAL, std::string("internal error: ") + error.what()};
 }
 
+grpc::Status ToStatus(const AuthVerdict& verdict) {
+  switch (verdict.kind) {
+    case AuthVerdict::Kind::kAllowed: return grpc::Status::OK;
+    case AuthVerdict::Kind::kMissing:
+    case AuthVerdict::Kind::kUnknown: return {grpc::StatusCode::UNAUTHENTICATED, verdict.message};
+    case AuthVerdict::Kind::kForbidden: return {grpc::StatusCode::PERMISSION_DENIED, verdict.message};
+  }
+  return {grpc::StatusCode::INTERNAL, "internal error: unknown authentication verdict"};
+}
+
 }  // namespace springblend::server

@@ -36,9 +36,15 @@ Pin ParsePin(const std::string& spec) {
 Scene LoadScene(const std::string& path) {
   std::ifstream in(path);
   if (!in) throw Error(ErrorCode::kNotFound, "frames file not found: " + path);
+  std::ostringstream text;
+  text << in.rdbuf();
+  return ParseScene(text.str(), path);
+}
+
+Scene ParseScene(const std::string& text, const std::string& path) {
   nlohmann::json doc;
   try {
-    doc = nlohmann::json::parse(in);
+    doc = nlohmann::json::parse(text);
   } catch (const nlohmann::json::exception& e) {
     throw Error(ErrorCode::kInvalidInput, path + ": not valid JSON: " + e.what());
   }

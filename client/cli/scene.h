@@ -19,5 +19,7 @@ struct Scene {
   std::vector<Frame> frames;
 };
 Scene LoadScene(const std::string& path);
+// The same from memory; source names it in messages.
+Scene ParseScene(const std::string& text, const std::string& source);
 
 }  // namespace springblend::cli

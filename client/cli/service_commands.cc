@@ -22,6 +22,8 @@ namespace {
 
 struct RemoteArgs {
   std::string server = "127.0.0.1:50051";
+  bool tls = false;
+  std::string tls_ca, tls_cert, tls_key, tls_server_name, token;
   // upload
   std::string rest, name;
   std::vector<std::string> targets;
@@ -106,8 +108,20 @@ nlohmann::json CharacterJson(const v1::Character& c) {
           {"precompute_ms", s.precompute_ms()}};
 }
 
+ClientOptions OptionsOf(const RemoteArgs& args) {
+  ClientOptions options;
+  options.address = args.server;
+  options.tls = args.tls;
+  options.tls_root_ca_file = args.tls_ca;
+  options.tls_cert_file = args.tls_cert;
+  options.tls_key_file = args.tls_key;
+  options.tls_server_name = args.tls_server_name;
+  options.token = args.token;
+  return options;
+}
+
 int RunUpload(const RemoteArgs& args) {
-  Client client({args.server});
+  Client client(OptionsOf(args));
   TriangleMesh rest = LoadMesh(args.rest);
   std::vector<TriangleMesh> targets;
   for (const auto& t : args.targets) targets.push_back(LoadMesh(t));
@@ -121,7 +135,7 @@ int RunUpload(const RemoteArgs& args) {
 }
 
 int RunSolve(const RemoteArgs& args) {
-  Client client({args.server});
+  Client client(OptionsOf(args));
   const v1::Character character = client.Get(args.character, /*with_faces=*/true);
   Faces faces(character.faces().size() / 12, 3);
   std::memcpy(faces.data(), character.faces().data(), character.faces().size());
@@ -194,20 +208,20 @@ int RunSolve(const RemoteArgs& args) {
 }
 
 int RunList(const RemoteArgs& args) {
-  Client client({args.server});
+  Client client(OptionsOf(args));
   for (const auto& c : client.List()) std::cout << CharacterJson(c).dump() << std::endl;
   return kExitOk;
 }
 
 int RunDelete(const RemoteArgs& args) {
-  Client client({args.server});
+  Client client(OptionsOf(args));
   client.Delete(args.character);
   std::cout << nlohmann::json({{"deleted", args.character}}).dump() << std::endl;
   return kExitOk;
 }
 
 int RunHealth(const RemoteArgs& args) {
-  Client client({args.server});
+  Client client(OptionsOf(args));
   const bool serving = client.Healthy();
   std::cout << nlohmann::json({{"server", args.server}, {"status", serving ? "SERVING" : "NOT_SERVING"}}).dump()
             << std::endl;
@@ -222,8 +236,10 @@ Runner Guarded(std::function<int()> run) {
     } catch (const ClientError& e) {
       std::cerr << "springblend: server error " << e.code() << ": " << e.what() << "\n";
       const auto code = static_cast<grpc::StatusCode>(e.code());
-      return code == grpc::StatusCode::INVALID_ARGUMENT || code == grpc::StatusCode::NOT_FOUND ? kExitBadInput
-                                                                                               : kExitUnavailable;
+      const bool callers_mistake = code == grpc::StatusCode::INVALID_ARGUMENT || code == grpc::StatusCode::NOT_FOUND ||
+                                   code == grpc::StatusCode::UNAUTHENTICATED ||
+                                   code == grpc::StatusCode::PERMISSION_DENIED;
+      return callers_mistake ? kExitBadInput : kExitUnavailable;
     }
   };
 }
@@ -235,6 +251,14 @@ std::vector<std::pair<std::string, Runner>> AddServiceCommands(CLI::App& app) {
   std::vector<std::pair<std::string, Runner>> runners;
   auto server_option = [&](CLI::App* cmd) {
     cmd->add_option("--server", args->server, "server address (host:port)");
+    cmd->add_flag("--tls", args->tls, "use TLS, checking the server against the system's roots");
+    cmd->add_option("--tls-ca", args->tls_ca, "PEM CA bundle to check the server's certificate with (implies --tls)");
+    cmd->add_option("--tls-cert", args->tls_cert, "PEM client certificate, for servers requiring mutual TLS");
+    cmd->add_option("--tls-key", args->tls_key, "PEM private key of --tls-cert");
+    cmd->add_option("--tls-server-name", args->tls_server_name, "name the server's certificate must carry "
+                                                                 "(default: the host of --server)");
+    cmd->add_option("--token", args->token, "token sent as 'authorization: Bearer TOKEN'")
+        ->envname("SPRINGBLEND_TOKEN");
   };
 
   CLI::App* upload = app.add_subcommand("upload", "upload a character; prints its id and rig summary as JSON");

@@ -3,6 +3,8 @@
 #include <grpcpp/grpcpp.h>
 
 #include <cstring>
+#include <fstream>
+#include <sstream>
 
 #include <fmt/format.h>
 
@@ -15,12 +17,36 @@ void Check(const grpc::Status& status) {
   if (!status.ok()) throw ClientError(status.error_code(), status.error_message());
 }
 
+std::string ReadPem(const char* field, const std::string& path) {
+  if (path.empty()) return "";
+  std::ifstream in(path, std::ios::binary);
+  std::ostringstream text;
+  text << in.rdbuf();
+  if (!in || text.str().find("-----BEGIN ") == std::string::npos) {
+    throw ClientError(grpc::StatusCode::INVALID_ARGUMENT, fmt::format("{}: cannot read a PEM file at {}", field, path));
+  }
+  return text.str();
+}
+
+std::shared_ptr<grpc::ChannelCredentials> Credentials(const ClientOptions& options) {
+  if (!options.UsesTls()) return grpc::InsecureChannelCredentials();
+  if (options.tls_cert_file.empty() != options.tls_key_file.empty()) {
+    throw ClientError(grpc::StatusCode::INVALID_ARGUMENT, "tls_cert_file and tls_key_file go together");
+  }
+  grpc::SslCredentialsOptions ssl;
+  ssl.pem_root_certs = ReadPem("tls_root_ca_file", options.tls_root_ca_file);
+  ssl.pem_cert_chain = ReadPem("tls_cert_file", options.tls_cert_file);
+  ssl.pem_private_key = ReadPem("tls_key_file", options.tls_key_file);
+  return grpc::SslCredentials(ssl);
+}
+
 }  // namespace
 
 Client::Client(ClientOptions options) : options_(std::move(options)) {
   grpc::ChannelArguments arguments;
   arguments.SetMaxReceiveMessageSize(256 << 20);
-  channel_ = grpc::CreateCustomChannel(options_.address, grpc::InsecureChannelCredentials(), arguments);
+  if (!options_.tls_server_name.empty()) arguments.SetSslTargetNameOverride(options_.tls_server_name);
+  channel_ = grpc::CreateCustomChannel(options_.address, Credentials(options_), arguments);
   characters_ = v1::CharacterService::NewStub(channel_);
   solves_ = v1::SolveService::NewStub(channel_);
 }
@@ -29,6 +55,7 @@ std::unique_ptr<grpc::ClientContext> Client::Context(const std::string& characte
   auto context = std::make_unique<grpc::ClientContext>();
   context->set_deadline(std::chrono::system_clock::now() + options_.timeout);
   if (!character.empty()) context->AddMetadata(kCharacterHeader, character);
+  if (!options_.token.empty()) context->AddMetadata("authorization", "Bearer " + options_.token);
   return context;
 }
 

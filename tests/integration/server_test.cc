@@ -16,6 +16,7 @@
 #include <fstream>
 #include <thread>
 
+#include "integration/server_process.h"
 #include "springblend/client.h"
 #include "test_util.h"
 
@@ -25,111 +26,12 @@ namespace {
 using ::testing::HasSubstr;
 using testing::DataPath;
 using testing::TempDir;
-
-// A server process; stopped with SIGTERM (the graceful path) when the object goes.
-class ServerProcess {
- public:
-  ServerProcess(const std::string& cache_dir, std::vector<std::string> extra = {}) {
-    int out[2];
-    EXPECT_EQ(pipe(out), 0);
-    pid_ = fork();
-    if (pid_ == 0) {
-      dup2(out[1], STDOUT_FILENO);
-      close(out[0]);
-      std::vector<std::string> args = {SPRINGBLEND_SERVER, "--listen", "127.0.0.1:0", "--cache-dir", cache_dir};
-      args.insert(args.end(), extra.begin(), extra.end());
-      std::vector<char*> argv;
-      for (auto& a : args) argv.push_back(a.data());
-      argv.push_back(nullptr);
-      execv(argv[0], argv.data());
-      _exit(127);
-    }
-    close(out[1]);
-    // Lines until "springblend-server listening on 127.0.0.1:PORT" (after "... metrics on http://...").
-    for (int lines = 0; lines < 4 && address_.empty(); ++lines) {
-      std::string line;
-      char c;
-      while (read(out[0], &c, 1) == 1 && c != '\n') line += c;
-      const auto colon = line.rfind(':');
-      if (colon == std::string::npos) break;
-      if (line.find("metrics on") != std::string::npos) {
-        metrics_port_ = std::stoi(line.substr(colon + 1));
-      } else if (line.find("listening on") != std::string::npos) {
-        address_ = "127.0.0.1:" + line.substr(colon + 1);
-      }
-    }
-    close(out[0]);
-  }
-  int metrics_port() const { return metrics_port_; }
-  ~ServerProcess() { Stop(); }
-  int Stop() {
-    if (pid_ <= 0) return -1;
-    kill(pid_, SIGTERM);
-    int status = 0;
-    waitpid(pid_, &status, 0);
-    pid_ = -1;
-    return WIFEXITED(status) ? WEXITSTATUS(status) : -1;
-  }
-  const std::string& address() const { return address_; }
-
- private:
-  pid_t pid_ = -1;
-  std::string address_;
-  int metrics_port_ = 0;
-};
-
-// GET a path from 127.0.0.1:port; returns the whole response.
-std::string HttpGet(int port, const std::string& path) {
-  const int fd = socket(AF_INET, SOCK_STREAM, 0);
-  sockaddr_in address{};
-  address.sin_family = AF_INET;
-  address.sin_port = htons(static_cast<std::uint16_t>(port));
-  inet_pton(AF_INET, "127.0.0.1", &address.sin_addr);
-  std::string response;
-  if (connect(fd, reinterpret_cast<sockaddr*>(&address), sizeof(address)) == 0) {
-    const std::string request = "GET " + path + " HTTP/1.0\r\n\r\n";
-    send(fd, request.data(), request.size(), 0);
-    char buffer[4096];
-    ssize_t n;
-    while ((n = recv(fd, buffer, sizeof(buffer), 0)) > 0) response.append(buffer, static_cast<size_t>(n));
-  }
-  close(fd);
-  return response;
-}
-
-struct CylinderRig {
-  TriangleMesh rest = LoadMesh(DataPath("cylinder/cylinder.obj"));
-  std::vector<TriangleMesh> targets = {LoadMesh(DataPath("cylinder/poses-2_cylinder-1.obj")),
-                                       LoadMesh(DataPath("cylinder/poses-2_cylinder-3.obj"))};
-};
-
-v1::SolveRequest SweepRequest(const std::string& id, int frames, const std::vector<double>& end) {
-  v1::SolveRequest request;
-  request.set_character_id(id);
-  for (const auto& frame : SweepFrames(end, frames)) {
-    v1::FrameRequest* f = request.add_frames();
-    for (double w : frame.weights) f->add_weights(w);
-  }
-  return request;
-}
-
-int StatusOf(const std::function<void()>& call) {
-  try {
-    call();
-  } catch (const ClientError& e) {
-    return e.code();
-  }
-  return 0;
-}
-
-std::string MessageOf(const std::function<void()>& call) {
-  try {
-    call();
-  } catch (const ClientError& e) {
-    return e.what();
-  }
-  return "";
-}
+using testing::CylinderRig;
+using testing::MessageOf;
+using testing::ServerProcess;
+using testing::StatusOf;
+using testing::SweepRequest;
+using testing::HttpGet;
 
 class ServerTest : public ::testing::Test {
  protected:

@@ -27,6 +27,22 @@ struct ClientOptions {
   std::string address = "127.0.0.1:50051";
   std::chrono::milliseconds timeout{std::chrono::minutes(10)};  // per call
   size_t piece_bytes = 1 << 20;  // upload piece size, well under gRPC's 4 MiB message limit
+
+  // Transport security: TLS when `tls` is set or any tls_* file is given. The server's certificate is checked
+  // against tls_root_ca_file (PEM; empty: the system's roots) and must name the host of `address`, or
+  // tls_server_name when set. tls_cert_file and tls_key_file (PEM) are this client's certificate, for servers
+  // that require mutual TLS.
+  bool tls = false;
+  std::string tls_root_ca_file;
+  std::string tls_cert_file;
+  std::string tls_key_file;
+  std::string tls_server_name;
+  // Sent on every call as "authorization: Bearer TOKEN" (empty: none). Use TLS off loopback.
+  std::string token;
+
+  bool UsesTls() const {
+    return tls || !tls_root_ca_file.empty() || !tls_cert_file.empty() || !tls_key_file.empty();
+  }
 };
 
 // The metadata header that names the character of a call, so a load balancer can route by it.

@@ -1,0 +1,105 @@
+#include "security.h"
+
+#include <grpcpp/security/server_credentials.h>
+#include <openssl/evp.h>
+
+#include <fstream>
+#include <sstream>
+
+#include "springblend/error.h"
+
+namespace springblend::server {
+namespace {
+
+std::string ReadPem(const std::string& flag, const std::string& path) {
+  std::ifstream in(path, std::ios::binary);
+  if (!in) throw Error(ErrorCode::kInvalidInput, flag + ": cannot read " + path);
+  std::ostringstream text;
+  text << in.rdbuf();
+  if (text.str().find("-----BEGIN ") == std::string::npos) {
+    throw Error(ErrorCode::kInvalidInput, flag + ": " + path + " is not a PEM file");
+  }
+  return text.str();
+}
+
+std::string Sha256(const std::string& bytes) {
+  unsigned char digest[EVP_MAX_MD_SIZE];
+  unsigned int length = 0;
+  EVP_Digest(bytes.data(), bytes.size(), digest, &length, EVP_sha256(), nullptr);
+  return {reinterpret_cast<const char*>(digest), length};
+}
+
+const char* Describe(Access access) {
+  return access == Access::kWrite ? "upload or delete characters" : "read characters and solve";
+}
+
+}  // namespace
+
+std::shared_ptr<grpc::ServerCredentials> MakeServerCredentials(const TlsOptions& options) {
+  if (options.cert_file.empty()) {
+    if (!options.key_file.empty() || !options.client_ca_file.empty()) {
+      throw Error(ErrorCode::kInvalidInput, "--tls-key and --tls-client-ca need --tls-cert");
+    }
+    return grpc::InsecureServerCredentials();
+  }
+  if (options.key_file.empty()) throw Error(ErrorCode::kInvalidInput, "--tls-cert needs --tls-key");
+  grpc::SslServerCredentialsOptions ssl;
+  ssl.pem_key_cert_pairs.push_back(
+      {ReadPem("--tls-key", options.key_file), ReadPem("--tls-cert", options.cert_file)});
+  if (!options.client_ca_file.empty()) {
+    ssl.pem_root_certs = ReadPem("--tls-client-ca", options.client_ca_file);
+    ssl.client_certificate_request = GRPC_SSL_REQUEST_AND_REQUIRE_CLIENT_CERTIFICATE_AND_VERIFY;
+  }
+  return grpc::SslServerCredentials(ssl);
+}
+
+void TokenAuthenticator::Add(const std::string& token, Role role) {
+  if (token.empty()) throw Error(ErrorCode::kInvalidInput, "--token: a token may not be empty");
+  tokens_[Sha256(token)] = role;
+}
+
+void TokenAuthenticator::AddFile(const std::string& path) {
+  std::ifstream in(path);
+  if (!in) throw Error(ErrorCode::kInvalidInput, "--tokens-file: cannot read " + path);
+  std::string line;
+  for (int number = 1; std::getline(in, line); ++number) {
+    std::istringstream words(line);
+    std::string role, token, extra;
+    words >> role >> token >> extra;
+    if (role.empty() || role[0] == '#') continue;
+    const std::string where = "--tokens-file " + path + ":" + std::to_string(number);
+    if (token.empty() || !extra.empty()) {
+      throw Error(ErrorCode::kInvalidInput, where + ": expected 'ROLE TOKEN' (ROLE is full or solve)");
+    }
+    if (role == "full") {
+      Add(token, Role::kFull);
+    } else if (role == "solve") {
+      Add(token, Role::kSolve);
+    } else {
+      throw Error(ErrorCode::kInvalidInput, where + ": unknown role '" + role + "' (full or solve)");
+    }
+  }
+}
+
+AuthVerdict TokenAuthenticator::Check(const grpc::ServerContextBase& call, Access needed) const {
+  using Kind = AuthVerdict::Kind;
+  if (tokens_.empty()) return {};
+  const auto& metadata = call.client_metadata();
+  const auto header = metadata.find(kAuthorizationHeader);
+  if (header == metadata.end()) {
+    return {Kind::kMissing, "this server needs a token: send the metadata header 'authorization: Bearer TOKEN'"};
+  }
+  const std::string value(header->second.data(), header->second.size());
+  constexpr std::string_view kBearer = "Bearer ";
+  if (value.compare(0, kBearer.size(), kBearer) != 0) {
+    return {Kind::kMissing, "the authorization header must read 'Bearer TOKEN'"};
+  }
+  const auto known = tokens_.find(Sha256(value.substr(kBearer.size())));
+  if (known == tokens_.end()) return {Kind::kUnknown, "the token is not one this server accepts"};
+  if (needed == Access::kWrite && known->second != Role::kFull) {
+    return {Kind::kForbidden, std::string("this token may not ") + Describe(needed) + "; it needs the full role"};
+  }
+  return {};
+}
+
+}  // namespace springblend::server

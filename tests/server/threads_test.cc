@@ -1,0 +1,102 @@
+// The server's shared state under many threads, without gRPC in the way: the character store (memory LRU over
+// the cache directory) and the solver pool. CI runs these under ThreadSanitizer, fully instrumented (Debian's
+// gRPC is not, so TSan cannot judge the gRPC-driven tests; see tests/tsan.supp).
+#include <gtest/gtest.h>
+
+#include <atomic>
+#include <mutex>
+#include <set>
+#include <thread>
+
+#include "character_store.h"
+#include "solver_pool.h"
+#include "springblend/mesh.h"
+#include "test_util.h"
+
+namespace springblend::server {
+namespace {
+
+// A tetrahedron and a target: cheap to build, so eviction and rebuilds happen often.
+CharacterData Tetrahedron(double bending) {
+  const TriangleMesh rest = LoadMeshFromText(
+      "v 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 0 1\nf 1 3 2\nf 1 2 4\nf 2 3 4\nf 3 1 4\n", "obj", "tetrahedron");
+  CharacterData d;
+  d.name = "tet";
+  d.target_names = {"stretch"};
+  d.faces = rest.faces;
+  Points target = rest.vertices;
+  target(3, 2) = 1.5;
+  d.shapes = {rest.vertices, target};
+  d.options.bending_stiffness = bending;
+  return d;
+}
+
+TEST(StoreThreads, PutGetListDeleteFromManyThreadsUnderATinyBudget) {
+  testing::TempDir dir;
+  CharacterStore store({dir.path().string(), 1});  // 1 byte: every insertion evicts the others
+  std::vector<CharacterData> characters;
+  for (int i = 0; i < 3; ++i) characters.push_back(Tetrahedron(1.0 + i));
+  std::vector<std::string> ids;
+  for (const auto& c : characters) ids.push_back(ContentId(c));
+  std::atomic<int> failures{0};
+  std::vector<std::thread> threads;
+  for (int t = 0; t < 4; ++t) {
+    threads.emplace_back([&, t] {
+      for (int round = 0; round < 8; ++round) {
+        const size_t i = static_cast<size_t>(t + round) % characters.size();
+        try {
+          const auto [entry, known] = store.Put(characters[i]);
+          if (entry->id != ids[i]) ++failures;
+          const auto again = store.Get(ids[(i + 1) % ids.size()]);
+          if (again && again->rig->num_targets() != 1) ++failures;
+          store.List();
+          store.stats();
+          if (round % 3 == 2) store.Delete(ids[i]);
+        } catch (const std::exception& e) {
+          ++failures;
+          ADD_FAILURE() << e.what();
+        }
+      }
+    });
+  }
+  for (auto& t : threads) t.join();
+  EXPECT_EQ(failures, 0);
+  for (size_t i = 0; i < characters.size(); ++i) {
+    store.Put(characters[i]);
+    ASSERT_NE(store.Get(ids[i]), nullptr);
+  }
+  EXPECT_GT(store.stats().evictions, 0);
+}
+
+TEST(PoolThreads, EveryAcceptedJobRunsOnceFromManySubmitters) {
+  std::atomic<int> accepted{0}, ran{0};
+  std::mutex mutex;
+  std::set<int> seen;
+  {
+    SolverPool pool(3, 8);
+    std::vector<std::thread> submitters;
+    for (int s = 0; s < 4; ++s) {
+      submitters.emplace_back([&, s] {
+        for (int j = 0; j < 200; ++j) {
+          const int key = s * 1000 + j;
+          if (pool.TrySubmit([&, key] {
+                ++ran;
+                std::lock_guard lock(mutex);
+                seen.insert(key);
+              })) {
+            ++accepted;
+          }
+          pool.queue_depth();
+          pool.busy();
+        }
+      });
+    }
+    for (auto& t : submitters) t.join();
+  }  // the destructor finishes queued jobs
+  EXPECT_EQ(ran, accepted);
+  EXPECT_EQ(static_cast<int>(seen.size()), accepted.load());
+  EXPECT_GT(accepted, 0);
+}
+
+}  // namespace
+}  // namespace springblend::server
