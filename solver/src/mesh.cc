@@ -8,6 +8,10 @@
 #include <fmt/os.h>
 
 #include <algorithm>
+#include <cstdint>
+#include <vector>
+#include <iterator>
+#include <cstring>
 #include <cmath>
 #include <filesystem>
 #include <fstream>
@@ -76,11 +80,147 @@ std::string Lowercase(std::string s) {
   return s;
 }
 
+// OpenMesh 9.0's PLY and OFF readers trust their headers: a PLY header without end_header loops forever,
+// garbled PLY headers crash it, and a binary OFF header's counts are allocated as given. Headers are
+// checked here first, strictly, so bad files get an error naming the line and never reach those readers.
+void CheckPlyHeader(const std::string& text, const std::string& source) {
+  constexpr size_t kMaxHeader = 1 << 16;
+  const auto fail = [&](const std::string& what) {
+    throw Error(ErrorCode::kInvalidInput, fmt::format("{}: PLY header: {}", source, what));
+  };
+  const size_t end = text.find("end_header");
+  if (end == std::string::npos || end > kMaxHeader) fail("no end_header line in the first 64 KiB");
+  const size_t body = text.find('\n', end);
+  const size_t body_bytes = body == std::string::npos ? 0 : text.size() - body - 1;
+  std::istringstream header(text.substr(0, end));
+  std::string line;
+  int number = 0;
+  bool format = false;
+  bool element = false;
+  static const std::vector<std::string> kTypes = {"char",  "uchar", "short",  "ushort",  "int",    "uint",
+                                                  "float", "double", "int8",  "uint8",   "int16",  "uint16",
+                                                  "int32", "uint32", "float32", "float64"};
+  const auto known_type = [&](const std::string& t) {
+    return std::find(kTypes.begin(), kTypes.end(), t) != kTypes.end();
+  };
+  while (std::getline(header, line)) {
+    ++number;
+    if (!line.empty() && line.back() == '\r') line.pop_back();
+    std::istringstream words(line);
+    std::string word;
+    words >> word;
+    if (number == 1) {
+      if (word != "ply") fail("the first line is not 'ply'");
+      continue;
+    }
+    if (word.empty() || word == "comment" || word == "obj_info") continue;
+    if (word == "format") {
+      std::string kind, version;
+      words >> kind >> version;
+      if (kind != "ascii" && kind != "binary_little_endian" && kind != "binary_big_endian") {
+        fail(fmt::format("line {}: unknown format '{}'", number, kind));
+      }
+      format = true;
+    } else if (word == "element") {
+      std::string name;
+      long long count = -1;
+      words >> name >> count;
+      if (name.empty() || count < 0 || static_cast<unsigned long long>(count) > body_bytes) {
+        fail(fmt::format("line {}: element '{}' has a count ({}) the file's {} data bytes cannot hold", number,
+                         name, count, body_bytes));
+      }
+      element = true;
+    } else if (word == "property") {
+      if (!element) fail(fmt::format("line {}: a property before any element", number));
+      std::string type;
+      words >> type;
+      if (type == "list") {
+        std::string count_type, item_type;
+        words >> count_type >> item_type;
+        if (!known_type(count_type) || !known_type(item_type)) {
+          fail(fmt::format("line {}: unknown list types '{} {}'", number, count_type, item_type));
+        }
+      } else if (!known_type(type)) {
+        fail(fmt::format("line {}: unknown property type '{}'", number, type));
+      }
+      std::string name;
+      if (!(words >> name)) fail(fmt::format("line {}: a property without a name", number));
+    } else {
+      fail(fmt::format("line {}: unexpected '{}'", number, word));
+    }
+  }
+  if (number == 0) fail("empty");
+  if (!format) fail("no format line");
+}
+
+void CheckOffHeader(const std::string& text, const std::string& source) {
+  const auto fail = [&](const std::string& what) {
+    throw Error(ErrorCode::kInvalidInput, fmt::format("{}: OFF header: {}", source, what));
+  };
+  std::istringstream in(text);
+  std::string keyword;
+  in >> keyword;
+  const size_t off = keyword.rfind("OFF");
+  if (off == std::string::npos || off + 3 != keyword.size() || off > 5) fail("the file does not start with OFF");
+  std::string next;
+  const std::streampos after_keyword = in.tellg();
+  in >> next;
+  if (next == "BINARY") {
+    // Counts follow as binary 32-bit integers after the line break.
+    const size_t start = text.find('\n', static_cast<size_t>(in.tellg()));
+    if (start == std::string::npos || text.size() < start + 1 + 12) fail("binary counts are missing");
+    std::int32_t counts[3];
+    std::memcpy(counts, text.data() + start + 1, sizeof(counts));
+    const size_t rest = text.size() - start - 13;
+    if (counts[0] < 0 || counts[1] < 0 || static_cast<unsigned long long>(counts[0]) * 12 > rest ||
+        static_cast<unsigned long long>(counts[1]) * 4 > rest) {
+      fail(fmt::format("{} vertices and {} faces do not fit in the file's {} data bytes", counts[0], counts[1],
+                       rest));
+    }
+    return;
+  }
+  in.clear();
+  in.seekg(after_keyword);
+  // Skip comment lines, then the counts: vertices faces edges.
+  std::string line;
+  long long vertices = -1, faces = -1;
+  while (std::getline(in, line)) {
+    const size_t first = line.find_first_not_of(" \t\r");
+    if (first == std::string::npos || line[first] == '#') continue;
+    std::istringstream counts(line);
+    counts >> vertices >> faces;
+    break;
+  }
+  const size_t limit = text.size();
+  if (vertices < 0 || faces < 0 || static_cast<unsigned long long>(vertices) > limit ||
+      static_cast<unsigned long long>(faces) > limit) {
+    fail(fmt::format("counts ({} vertices, {} faces) are missing or more than the file's {} bytes can hold",
+                     vertices, faces, limit));
+  }
+}
+
 }  // namespace
 
 namespace {
+TriangleMesh ReadCheckedMesh(std::istream& in, const std::string& format, const std::string& source);
+
 TriangleMesh ReadMesh(std::istream& in, const std::string& format, const std::string& source) {
   QuietOpenMesh();
+  if (format == "ply" || format == "off") {
+    // Read whole (these are the CLI's formats; the server takes OBJ) to check the header before OpenMesh.
+    std::string text((std::istreambuf_iterator<char>(in)), std::istreambuf_iterator<char>());
+    if (format == "ply") {
+      CheckPlyHeader(text, source);
+    } else {
+      CheckOffHeader(text, source);
+    }
+    std::istringstream checked(text);
+    return ReadCheckedMesh(checked, format, source);
+  }
+  return ReadCheckedMesh(in, format, source);
+}
+
+TriangleMesh ReadCheckedMesh(std::istream& in, const std::string& format, const std::string& source) {
   PolyMesh scratch;
   RawImporter importer(scratch);
   OpenMesh::IO::Options options;

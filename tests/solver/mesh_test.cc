@@ -4,6 +4,11 @@
 #include <gmock/gmock.h>
 #include <gtest/gtest.h>
 
+#include <cstdint>
+#include <string>
+#include <vector>
+
+#include "springblend/error.h"
 #include "test_util.h"
 
 namespace springblend {
@@ -55,6 +60,40 @@ TEST(LoadMesh, AllFormatsGiveTheSameMesh) {
       "endsolid t\n"));
   EXPECT_EQ(stl.vertices.rows(), 4);
   EXPECT_EQ(stl.faces.rows(), 4);
+}
+
+TEST(LoadMesh, RefusesPlyAndOffHeadersItsReaderWouldTrust) {
+  // Fuzzer findings (issue 9): OpenMesh's PLY reader loops forever without end_header and crashes on
+  // garbled headers; its binary OFF reader allocates whatever the counts say. Each is now a clear error.
+  struct Case {
+    std::string file, text, message;
+  };
+  std::string binary_off = "OFF BINARY\n";
+  const std::int32_t counts[3] = {100000000, 100000000, 0};
+  binary_off.append(reinterpret_cast<const char*>(counts), sizeof(counts));
+  const std::vector<Case> cases = {
+      {"a.ply", "ply\nformat ascii 1.0\nelement vertex 4\n", "no end_header"},
+      {"b.ply", "ply\nformat ascii 1.0\nelement vertex 1\nproperty flot x\nend_header\n0 0 0\n",
+       "unknown property type 'flot'"},
+      {"c.ply", "ply\nformat ascii 1.0\nelement vertex 99999\nproperty float x\nend_header\n0 0 0\n",
+       "cannot hold"},
+      {"d.ply", "ply\nformat ascii 1.0\nelemnt vertex 4\nend_header\n", "line 3: unexpected 'elemnt'"},
+      {"e.ply", "plyx\nend_header\n", "the first line is not 'ply'"},
+      {"f.off", binary_off, "do not fit"},
+      {"g.off", "OFF\n999999999 1 0\n0 0 0\n", "more than the file's"},
+      {"h.off", "XOFFY\n", "does not start with OFF"},
+  };
+  TempDir dir;
+  for (const Case& c : cases) {
+    try {
+      LoadMesh(dir.Write(c.file, c.text));
+      ADD_FAILURE() << c.file << " was accepted";
+    } catch (const Error& e) {
+      EXPECT_EQ(e.code(), ErrorCode::kInvalidInput) << c.file;
+      EXPECT_THAT(e.what(), HasSubstr(c.message)) << c.file;
+      EXPECT_THAT(e.what(), HasSubstr(c.file)) << c.file;
+    }
+  }
 }
 
 TEST(LoadMesh, SplitsPolygonsIntoTriangles) {
