@@ -20,12 +20,13 @@ seeds="$out/seeds"
 rm -rf "$seeds"
 mkdir -p "$seeds"/{mesh_loader_fuzzer,upload_assembler_fuzzer,solve_request_fuzzer,frames_file_fuzzer,cache_file_fuzzer} \
   "$out/findings"
-# Mesh loader: a format byte (0 obj, 1 off, 2 stl) then the file: the first lines of a test mesh, and a
+# Mesh loader: a format byte (0 obj, 1 off, 2 stl, 3 ply) then the file: the first lines of a test mesh, and a
 # tetrahedron in each format. (Small seeds: OpenMesh is slow on large inputs under ASan.)
 { printf '\x00'; head -c 3000 tests/data/cylinder/cylinder.obj | grep -E '^(v|f) '; } > "$seeds/mesh_loader_fuzzer/cylinder-part.obj"
 tet_v='0 0 0\n1 0 0\n0 1 0\n0 0 1\n'
 { printf '\x00'; printf 'v 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 0 1\nf 1 3 2\nf 1 2 4\nf 2 3 4\nf 3 1 4\n'; } > "$seeds/mesh_loader_fuzzer/tet.obj"
 { printf '\x01'; printf "OFF\n4 4 0\n$tet_v"'3 0 2 1\n3 0 1 3\n3 1 2 3\n3 2 0 3\n'; } > "$seeds/mesh_loader_fuzzer/tet.off"
+{ printf '\x03'; printf "ply\nformat ascii 1.0\nelement vertex 4\nproperty float x\nproperty float y\nproperty float z\nelement face 4\nproperty list uchar int vertex_indices\nend_header\n$tet_v"'3 0 2 1\n3 0 1 3\n3 1 2 3\n3 2 0 3\n'; } > "$seeds/mesh_loader_fuzzer/tet.ply"
 { printf '\x02'; printf 'solid t\nfacet normal 0 0 -1\nouter loop\nvertex 0 0 0\nvertex 0 1 0\nvertex 1 0 0\nendloop\nendfacet\nendsolid t\n'; } > "$seeds/mesh_loader_fuzzer/tri.stl"
 # Frames files: the shapes the README documents.
 printf '{"frames": [{"weights": [0.5, 0.5]}]}' > "$seeds/frames_file_fuzzer/one.json"

@@ -75,10 +75,10 @@ void UploadAssembler::Add(const v1::UploadChunk& chunk) {
   if (!have_header_) Fail("a mesh piece before the header; send the header first");
   const v1::MeshPiece& p = chunk.piece();
   const std::string& bytes = p.data();
-  size_t array;
-  size_t element_bytes;
-  char* target;
-  size_t elements;
+  size_t array = 0;
+  size_t element_bytes = 1;  // every branch below sets these or throws
+  char* target = nullptr;
+  size_t elements = 0;
   if (p.kind() == v1::MeshPiece::FACES) {
     array = 0;
     element_bytes = 12;

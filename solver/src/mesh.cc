@@ -8,6 +8,7 @@
 #include <fmt/os.h>
 
 #include <algorithm>
+#include <cctype>
 #include <cstdint>
 #include <vector>
 #include <iterator>
@@ -103,50 +104,46 @@ void CheckPlyHeader(const std::string& text, const std::string& source) {
   const auto known_type = [&](const std::string& t) {
     return std::find(kTypes.begin(), kTypes.end(), t) != kTypes.end();
   };
+  const auto is_count = [](const std::string& t) {
+    return !t.empty() && t.size() <= 12 && std::all_of(t.begin(), t.end(), [](unsigned char c) { return std::isdigit(c); });
+  };
   while (std::getline(header, line)) {
     ++number;
     if (!line.empty() && line.back() == '\r') line.pop_back();
-    std::istringstream words(line);
-    std::string word;
-    words >> word;
+    std::istringstream split(line);
+    std::vector<std::string> w;
+    for (std::string word; split >> word;) w.push_back(word);
     if (number == 1) {
-      if (word != "ply") fail("the first line is not 'ply'");
+      if (w.size() != 1 || w[0] != "ply") fail("the first line is not 'ply'");
       continue;
     }
-    if (word.empty() || word == "comment" || word == "obj_info") continue;
-    if (word == "format") {
-      std::string kind, version;
-      words >> kind >> version;
-      if (kind != "ascii" && kind != "binary_little_endian" && kind != "binary_big_endian") {
-        fail(fmt::format("line {}: unknown format '{}'", number, kind));
+    if (w.empty() || w[0] == "comment" || w[0] == "obj_info") continue;
+    if (w[0] == "format") {
+      if (w.size() != 3 || (w[1] != "ascii" && w[1] != "binary_little_endian" && w[1] != "binary_big_endian")) {
+        fail(fmt::format("line {}: not 'format ascii|binary_little_endian|binary_big_endian VERSION'", number));
       }
       format = true;
-    } else if (word == "element") {
-      std::string name;
-      long long count = -1;
-      words >> name >> count;
-      if (name.empty() || count < 0 || static_cast<unsigned long long>(count) > body_bytes) {
+    } else if (w[0] == "element") {
+      if (w.size() != 3 || !is_count(w[2])) fail(fmt::format("line {}: not 'element NAME COUNT'", number));
+      const unsigned long long count = std::stoull(w[2]);
+      if (count > body_bytes) {
         fail(fmt::format("line {}: element '{}' has a count ({}) the file's {} data bytes cannot hold", number,
-                         name, count, body_bytes));
+                         w[1], count, body_bytes));
       }
       element = true;
-    } else if (word == "property") {
+    } else if (w[0] == "property") {
       if (!element) fail(fmt::format("line {}: a property before any element", number));
-      std::string type;
-      words >> type;
-      if (type == "list") {
-        std::string count_type, item_type;
-        words >> count_type >> item_type;
-        if (!known_type(count_type) || !known_type(item_type)) {
-          fail(fmt::format("line {}: unknown list types '{} {}'", number, count_type, item_type));
+      if (w.size() == 5 && w[1] == "list") {
+        if (!known_type(w[2]) || !known_type(w[3])) {
+          fail(fmt::format("line {}: unknown list types '{} {}'", number, w[2], w[3]));
         }
-      } else if (!known_type(type)) {
-        fail(fmt::format("line {}: unknown property type '{}'", number, type));
+      } else if (w.size() == 3) {
+        if (!known_type(w[1])) fail(fmt::format("line {}: unknown property type '{}'", number, w[1]));
+      } else {
+        fail(fmt::format("line {}: not 'property TYPE NAME' or 'property list TYPE TYPE NAME'", number));
       }
-      std::string name;
-      if (!(words >> name)) fail(fmt::format("line {}: a property without a name", number));
     } else {
-      fail(fmt::format("line {}: unexpected '{}'", number, word));
+      fail(fmt::format("line {}: unexpected '{}'", number, w[0]));
     }
   }
   if (number == 0) fail("empty");
@@ -188,7 +185,7 @@ void CheckOffHeader(const std::string& text, const std::string& source) {
     const size_t first = line.find_first_not_of(" \t\r");
     if (first == std::string::npos || line[first] == '#') continue;
     std::istringstream counts(line);
-    counts >> vertices >> faces;
+    if (!(counts >> vertices >> faces)) vertices = faces = -1;
     break;
   }
   const size_t limit = text.size();

@@ -79,6 +79,8 @@ TEST(LoadMesh, RefusesPlyAndOffHeadersItsReaderWouldTrust) {
        "cannot hold"},
       {"d.ply", "ply\nformat ascii 1.0\nelemnt vertex 4\nend_header\n", "line 3: unexpected 'elemnt'"},
       {"e.ply", "plyx\nend_header\n", "the first line is not 'ply'"},
+      // A fuzzer input that hung the reader: a count that is not a number.
+      {"i.ply", "ply\nformat ascii 1.0\nelement vertex t face 4\nend_header\n0 0 0\n", "not 'element NAME COUNT'"},
       {"f.off", binary_off, "do not fit"},
       {"g.off", "OFF\n999999999 1 0\n0 0 0\n", "more than the file's"},
       {"h.off", "XOFFY\n", "does not start with OFF"},
