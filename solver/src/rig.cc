@@ -701,8 +701,7 @@ std::shared_ptr<const Rig> RigBuilder::Build(TriangleMesh rest, std::vector<Tria
   BuildSurfaceSprings(*rig, springs);
   internal::Interior interior;
   BuildInterior(*rig, springs, interior);
-  if (options.interior && options.shell && interior.path == internal::Interior::Path::kSurfaceOnly &&
-      s.boundary_edges > 0) {
+  if (options.interior && options.shell && interior.path == internal::Interior::Path::kSurfaceOnly) {
     BuildShell(*rig, springs, interior);
   }
   s.vertices = static_cast<int>(interior.vertices.rows());

@@ -52,8 +52,8 @@ INSTANTIATE_TEST_SUITE_P(
     ::testing::Values(
         // A 19-edge slit in one hoof (and a second, small hole): capped, then tetrahedralized.
         SharedCase{"horse", "horse/horse-reference.obj", "horse/horse-01.obj", "capped", "holes closed"},
-        // About 200 self-intersecting triangle pairs: TetGen refuses; surface springs, and why.
-        SharedCase{"cat", "cat/cat-reference.obj", "cat/cat-01.obj", "surface", "intersects itself"},
+        // About 200 self-intersecting triangle pairs: TetGen refuses; a shell (inner layer), and why.
+        SharedCase{"cat", "cat/cat-reference.obj", "cat/cat-01.obj", "shell", "intersects itself"},
         // An open mask (rim, mouth, eyes): its caps cut through the face; a shell (inner layer), and why.
         SharedCase{"face", "face6706/generic_neutral_mesh.obj", "face6706/jawOpen.obj", "shell",
                    "inner layer"}),

@@ -69,8 +69,8 @@ struct RigOptions {
   bool anchor = true;
   int anchor_size = 8;
   std::optional<std::array<double, 3>> anchor_center;
-  // Thickness for open surfaces that get no interior (sheets such as a face mask, whose caps TetGen
-  // refuses): an inner layer of vertices offset against each shape's own vertex normals by
+  // Thickness for surfaces that get no interior (an open sheet such as a face mask, whose caps TetGen
+  // refuses, or a self-intersecting closed surface such as the cat): an inner layer of vertices offset against each shape's own vertex normals by
   // shell_thickness mean edge lengths, joined to the surface by springs along, across and beside every
   // edge (a prism shell). A sheet held only by edge and bending springs is floppy out of its plane (slow,
   // and with several equilibria); the shell makes it resist bending. Each target's layer is placed by its
