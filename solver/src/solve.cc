@@ -587,9 +587,9 @@ bool Solver::Impl::FactorizeAndSolve(SolveSummary& summary) {
   }
   const internal::SparseCholesky& factor = use_reduced_ ? *reduced_->cholesky : *cholesky_;
   kept_ = KeptFactor{true, use_reduced_, factor.SolvesPerFactorization(), used, false};
+  // The per-spring blocks are left as the ladder assembled them: the line search reassembles at the new
+  // iterate before any matrix-free product reads them.
   SolveLinear(force_, &step_);
-  // Leave the per-spring blocks of the true Hessian at x_ for later matrix-free products.
-  Assemble(x_, 1.0);
   if (!step_.allFinite()) {
     summary.message = "the Newton step is not finite";
     return false;
