@@ -1,7 +1,8 @@
 // TetGen 1.5 ends a failed run by throwing an int (or, built without TETLIBRARY, by exit()), can crash or loop
-// forever on bad input, and prints to stdout. So it never runs in the caller's process: a forked child runs it
-// and sends the result back through a pipe as raw arrays; the parent reads it under a deadline, reaps the
-// child and turns every way the child can end into an Error.
+// forever on bad input, and prints to stdout. So it never runs in the caller's process: a child process (this
+// same executable, spawned and exec'd, see "The child" below) runs it and sends the result back through a pipe
+// as raw arrays; the parent reads it under a deadline, reaps the child and turns every way the child can end
+// into an Error.
 #include "tetrahedralize.h"
 
 #include <Eigen/Geometry>
@@ -9,6 +10,8 @@
 #include <fmt/format.h>
 #include <poll.h>
 #include <signal.h>
+#include <spawn.h>
+#include <sys/mman.h>
 #include <sys/wait.h>
 #include <tetgen.h>
 #include <unistd.h>
@@ -20,6 +23,7 @@
 #include <cmath>
 #include <cstdint>
 #include <cstdio>
+#include <cstdlib>
 #include <cstring>
 #include <limits>
 #include <new>
@@ -211,9 +215,27 @@ std::int64_t PayloadBytes(const MessageHeader& header) {
 }
 
 // ---------------------------------------------------------------------------------------------------------
-// The child. It runs in a copy of a possibly multithreaded process, so it uses only TetGen, malloc (which glibc
-// makes safe after fork) and fresh stdio streams: a stream such as stdout may have been locked by another
-// thread at the moment of the fork, and that lock would never be released here.
+// The child. A fork of a multithreaded process may only call async-signal-safe functions until it execs: any
+// lock another thread held at the fork (the allocator's, a stdio stream's) stays locked in the copy. (glibc's
+// malloc survives it, sanitizer allocators and many others do not: a forked child running TetGen under ASan
+// hung now and then.) So the child is a fresh image of this same executable, started by posix_spawn; a
+// constructor in this file sees the variable below before main() runs, runs TetGen and exits. Any program that
+// calls Tetrahedralize links this file, so its own executable can always serve as the child.
+
+constexpr const char* kChildVariable = "SPRINGBLEND_TETGEN_CHILD";
+constexpr const char* kChildRole = "request=3,result=4";
+constexpr int kRequestFd = 3;  // a memfd holding the request, read from offset 0
+constexpr int kResultFd = 4;   // the write end of the result pipe
+
+// What the parent sends: this header, the switches, the points (row-major doubles), the faces (row-major int32).
+struct Request {
+  std::uint64_t magic;
+  std::int32_t diagnose;
+  std::int32_t switches_bytes;
+  std::int64_t points;
+  std::int64_t faces;
+};
+constexpr std::uint64_t kRequestMagic = 0x7370626c74657431ULL;  // "spbltet1"
 
 bool WriteAll(int fd, const void* data, size_t size) {
   const char* bytes = static_cast<const char*>(data);
@@ -229,33 +251,49 @@ bool WriteAll(int fd, const void* data, size_t size) {
   return true;
 }
 
+bool ReadAllAt(int fd, void* data, size_t size, off_t offset) {
+  char* bytes = static_cast<char*>(data);
+  while (size > 0) {
+    const ssize_t got = pread(fd, bytes, size, offset);
+    if (got < 0 && errno == EINTR) continue;
+    if (got <= 0) return false;
+    bytes += got;
+    size -= static_cast<size_t>(got);
+    offset += got;
+  }
+  return true;
+}
+
 bool SendHeader(int fd, MessageKind kind, std::int32_t error_code = 0) {
   const MessageHeader header{kind, error_code, 0, 0};
   return WriteAll(fd, &header, sizeof(header));
 }
 
-// Detaches the child from the caller's process state; returns the descriptor to write the result to.
-int IsolateChild(int result_fd) {
-  // A crash handler the caller installed must not run here: a crash should simply end the child.
-  struct sigaction default_action {};
-  default_action.sa_handler = SIG_DFL;
-  for (const int signal_number : {SIGSEGV, SIGBUS, SIGFPE, SIGILL, SIGABRT, SIGPIPE}) {
-    sigaction(signal_number, &default_action, nullptr);
+// tetgenio frees its arrays with delete[], so they are allocated with new[].
+void FillTetGenInput(const std::vector<double>& points, const std::vector<std::int32_t>& faces, tetgenio* in) {
+  in->firstnumber = 0;
+  in->numberofpoints = static_cast<int>(points.size() / 3);
+  in->pointlist = new REAL[points.size()];
+  std::copy(points.begin(), points.end(), in->pointlist);
+  const int face_count = static_cast<int>(faces.size() / 3);
+  in->facetlist = new tetgenio::facet[static_cast<size_t>(face_count)];
+  in->numberoffacets = face_count;
+  for (int f = 0; f < face_count; ++f) tetgenio::init(&in->facetlist[f]);
+  // Markers number the faces from 1 (0 reads as "no marker"), so that the -d report names them.
+  in->facetmarkerlist = new int[static_cast<size_t>(face_count)];
+  for (int f = 0; f < face_count; ++f) {
+    tetgenio::facet& facet = in->facetlist[f];
+    facet.polygonlist = new tetgenio::polygon[1];
+    tetgenio::init(&facet.polygonlist[0]);
+    facet.numberofpolygons = 1;
+    const size_t first = 3 * static_cast<size_t>(f);
+    facet.polygonlist[0].vertexlist = new int[3]{faces[first], faces[first + 1], faces[first + 2]};
+    facet.polygonlist[0].numberofvertices = 3;
+    in->facetmarkerlist[f] = f + 1;
   }
-  if (result_fd <= STDERR_FILENO) result_fd = fcntl(result_fd, F_DUPFD, STDERR_FILENO + 1);
-  const int null_fd = open("/dev/null", O_RDWR);
-  for (const int fd : {STDIN_FILENO, STDOUT_FILENO, STDERR_FILENO}) dup2(null_fd, fd);
-  // Close every other inherited descriptor, above all the pipes of concurrent calls in other threads: their
-  // readers would not see end-of-file while this child holds a copy of the write end.
-  if (result_fd > STDERR_FILENO + 1) close_range(STDERR_FILENO + 1, static_cast<unsigned>(result_fd) - 1, 0);
-  close_range(static_cast<unsigned>(result_fd) + 1, ~0U, 0);
-  return result_fd;
 }
 
 bool SendMesh(tetgenio* in, char* switches, int fd) {
-  stdout = std::fopen("/dev/null", "w");
-  if (stdout == nullptr) return false;
-  stderr = stdout;
   tetgenio out;
   tetrahedralize(switches, in, &out);
   static_assert(sizeof(int) == sizeof(std::int32_t));
@@ -289,31 +327,58 @@ bool SendIntersections(tetgenio* in, char* switches, int fd) {
   // The -d report goes to stdout only: catch it in memory.
   char* log = nullptr;
   size_t log_size = 0;
-  stdout = open_memstream(&log, &log_size);
-  if (stdout == nullptr) return false;
-  stderr = stdout;
+  FILE* memory = open_memstream(&log, &log_size);
+  if (memory == nullptr) return false;
+  stdout = memory;
   tetgenio out;
   tetrahedralize(switches, in, &out);
-  std::fflush(stdout);
+  std::fflush(memory);
   const auto pairs = ParseIntersections(std::string(log, log_size));
   const MessageHeader header{MessageKind::kIntersections, 0, 0, static_cast<std::int64_t>(pairs.size())};
   return WriteAll(fd, &header, sizeof(header)) && WriteAll(fd, pairs.data(), sizeof(pairs[0]) * pairs.size());
 }
 
-[[noreturn]] void RunChild(int result_fd, tetgenio* in, char* switches, bool diagnose) {
-  const int fd = IsolateChild(result_fd);
+// Reads the request, runs TetGen, sends the message; returns the exit code.
+int ServeChild() {
+  Request request{};
+  if (!ReadAllAt(kRequestFd, &request, sizeof(request), 0) || request.magic != kRequestMagic ||
+      request.switches_bytes <= 0 || request.switches_bytes > 256 || request.points < 0 || request.faces < 0 ||
+      request.points > std::numeric_limits<std::int32_t>::max() ||
+      request.faces > std::numeric_limits<std::int32_t>::max()) {
+    return 2;
+  }
   bool sent = false;
   try {
-    sent = diagnose ? SendIntersections(in, switches, fd) : SendMesh(in, switches, fd);
+    std::string switches(static_cast<size_t>(request.switches_bytes), '\0');
+    std::vector<double> points(3 * static_cast<size_t>(request.points));
+    std::vector<std::int32_t> faces(3 * static_cast<size_t>(request.faces));
+    off_t offset = sizeof(request);
+    if (!ReadAllAt(kRequestFd, switches.data(), switches.size(), offset)) return 2;
+    offset += static_cast<off_t>(switches.size());
+    if (!ReadAllAt(kRequestFd, points.data(), sizeof(double) * points.size(), offset)) return 2;
+    offset += static_cast<off_t>(sizeof(double) * points.size());
+    if (!ReadAllAt(kRequestFd, faces.data(), sizeof(std::int32_t) * faces.size(), offset)) return 2;
+    close(kRequestFd);
+    tetgenio in;
+    FillTetGenInput(points, faces, &in);
+    sent = request.diagnose != 0 ? SendIntersections(&in, switches.data(), kResultFd)
+                                 : SendMesh(&in, switches.data(), kResultFd);
   } catch (int code) {  // TetGen's terminatetetgen()
-    sent = SendHeader(fd, MessageKind::kTetGenError, code);
+    sent = SendHeader(kResultFd, MessageKind::kTetGenError, code);
   } catch (const std::bad_alloc&) {
-    sent = SendHeader(fd, MessageKind::kOutOfMemory);
+    sent = SendHeader(kResultFd, MessageKind::kOutOfMemory);
   } catch (...) {
-    sent = SendHeader(fd, MessageKind::kUnknownException);
+    sent = SendHeader(kResultFd, MessageKind::kUnknownException);
   }
-  // _exit: no atexit handlers, no flushing of the caller's stdio buffers copied into this process.
-  _exit(sent ? 0 : 1);
+  return sent ? 0 : 1;
+}
+
+// Runs before main() in every program that links this file; in anything but a TetGen child it only reads one
+// variable. _exit: no atexit handlers, no static destructors, no sanitizer leak report of the parent's objects.
+__attribute__((constructor)) void ServeChildIfAsked() {
+  const char* role = std::getenv(kChildVariable);
+  if (role == nullptr || std::strcmp(role, kChildRole) != 0) return;
+  _exit(ServeChild());
 }
 
 // ---------------------------------------------------------------------------------------------------------
@@ -357,28 +422,121 @@ class Child {
   int fd_;
 };
 
-std::string SystemError(const char* call) {
-  return fmt::format("{} failed: {}", call, std::generic_category().message(errno));
+std::string SystemError(const char* call, int error) {
+  return fmt::format("{} failed: {}", call, std::generic_category().message(error));
+}
+
+std::string SystemError(const char* call) { return SystemError(call, errno); }
+
+// Closes a descriptor when it goes out of scope.
+class Descriptor {
+ public:
+  explicit Descriptor(int fd = -1) : fd_(fd) {}
+  Descriptor(const Descriptor&) = delete;
+  Descriptor& operator=(const Descriptor&) = delete;
+  Descriptor(Descriptor&& other) noexcept : fd_(other.Release()) {}
+  ~Descriptor() { Reset(); }
+  int get() const { return fd_; }
+  int Release() { return std::exchange(fd_, -1); }
+  void Reset(int fd = -1) {
+    if (fd_ >= 0) close(fd_);
+    fd_ = fd;
+  }
+
+ private:
+  int fd_;
+};
+
+[[noreturn]] void CannotStart(const std::string& reason) {
+  throw ToError(TetGenFailed("could not be started: " + reason));
+}
+
+// The request as an anonymous in-memory file (no pipe to fill, no SIGPIPE if the child dies early).
+Descriptor WriteRequest(const Points& vertices, const Faces& faces, const std::string& switches, bool diagnose) {
+  Descriptor request(memfd_create("springblend-tetgen-request", MFD_CLOEXEC));
+  if (request.get() < 0) CannotStart(SystemError("memfd_create"));
+  const Request header{kRequestMagic, diagnose ? 1 : 0, static_cast<std::int32_t>(switches.size()), vertices.rows(),
+                       faces.rows()};
+  static_assert(sizeof(int) == sizeof(std::int32_t));
+  if (!WriteAll(request.get(), &header, sizeof(header)) ||
+      !WriteAll(request.get(), switches.data(), switches.size()) ||
+      !WriteAll(request.get(), vertices.data(), sizeof(double) * static_cast<size_t>(vertices.size())) ||
+      !WriteAll(request.get(), faces.data(), sizeof(int) * static_cast<size_t>(faces.size()))) {
+    CannotStart(SystemError("writing the request"));
+  }
+  return request;
+}
+
+// A copy of `fd` numbered above the descriptors the child gets, so that setting those up cannot clobber it.
+Descriptor HighCopy(int fd) {
+  Descriptor copy(fcntl(fd, F_DUPFD_CLOEXEC, kResultFd + 1));
+  if (copy.get() < 0) CannotStart(SystemError("fcntl(F_DUPFD_CLOEXEC)"));
+  return copy;
+}
+
+// Starts this executable as a TetGen child reading `request` and writing to `result`; returns its pid.
+pid_t SpawnChild(int request, int result) {
+  posix_spawn_file_actions_t actions;
+  posix_spawnattr_t attributes;
+  if (int error = posix_spawn_file_actions_init(&actions); error != 0) {
+    CannotStart(SystemError("posix_spawn_file_actions_init", error));
+  }
+  if (int error = posix_spawnattr_init(&attributes); error != 0) {
+    posix_spawn_file_actions_destroy(&actions);
+    CannotStart(SystemError("posix_spawnattr_init", error));
+  }
+  // Default dispositions and an empty mask for every signal (the caller may block SIGTERM for a signal thread,
+  // or have set SIGPIPE to be ignored); standard streams on /dev/null (TetGen prints); nothing else inherited.
+  sigset_t all, none;
+  sigfillset(&all);
+  sigemptyset(&none);
+  int error = posix_spawnattr_setsigdefault(&attributes, &all);
+  if (error == 0) error = posix_spawnattr_setsigmask(&attributes, &none);
+  if (error == 0) error = posix_spawnattr_setflags(&attributes, POSIX_SPAWN_SETSIGDEF | POSIX_SPAWN_SETSIGMASK);
+  if (error == 0) error = posix_spawn_file_actions_addopen(&actions, STDIN_FILENO, "/dev/null", O_RDONLY, 0);
+  if (error == 0) error = posix_spawn_file_actions_addopen(&actions, STDOUT_FILENO, "/dev/null", O_WRONLY, 0);
+  if (error == 0) error = posix_spawn_file_actions_adddup2(&actions, STDOUT_FILENO, STDERR_FILENO);
+  if (error == 0) error = posix_spawn_file_actions_adddup2(&actions, request, kRequestFd);
+  if (error == 0) error = posix_spawn_file_actions_adddup2(&actions, result, kResultFd);
+  if (error == 0) error = posix_spawn_file_actions_addclosefrom_np(&actions, kResultFd + 1);
+
+  // The environment plus the role; an inherited role (this process being a child itself) is replaced.
+  const std::string role = fmt::format("{}={}", kChildVariable, kChildRole);
+  std::vector<char*> environment;
+  const std::string prefix = fmt::format("{}=", kChildVariable);
+  for (char** variable = environ; *variable != nullptr; ++variable) {
+    if (std::strncmp(*variable, prefix.c_str(), prefix.size()) != 0) environment.push_back(*variable);
+  }
+  environment.push_back(const_cast<char*>(role.c_str()));
+  environment.push_back(nullptr);
+  char name[] = "springblend-tetgen";
+  char* arguments[] = {name, nullptr};
+
+  pid_t pid = -1;
+  if (error == 0) error = posix_spawn(&pid, "/proc/self/exe", &actions, &attributes, arguments, environment.data());
+  posix_spawn_file_actions_destroy(&actions);
+  posix_spawnattr_destroy(&attributes);
+  if (error != 0) CannotStart(SystemError("posix_spawn of /proc/self/exe", error));
+  return pid;
 }
 
 // Runs TetGen with `switches` in a child and collects its message; kills the child at `deadline`.
-ChildOutcome RunInChild(tetgenio* in, std::string switches, bool diagnose, Clock::time_point deadline) {
+ChildOutcome RunInChild(const Points& vertices, const Faces& faces, const std::string& switches, bool diagnose,
+                        Clock::time_point deadline) {
+  Descriptor request = WriteRequest(vertices, faces, switches, diagnose);
+  Descriptor high_request = HighCopy(request.get());
+  request.Reset();
   int fds[2];
   // Close-on-exec keeps the pipe out of programs that other threads spawn meanwhile.
-  if (pipe2(fds, O_CLOEXEC) != 0) throw ToError(TetGenFailed("could not be started: " + SystemError("pipe2")));
-  const pid_t pid = fork();
-  if (pid < 0) {
-    const std::string reason = SystemError("fork");
-    close(fds[0]);
-    close(fds[1]);
-    throw ToError(TetGenFailed("could not be started: " + reason));
-  }
-  if (pid == 0) {
-    close(fds[0]);
-    RunChild(fds[1], in, switches.data(), diagnose);
-  }
-  close(fds[1]);
-  Child child(pid, fds[0]);
+  if (pipe2(fds, O_CLOEXEC) != 0) CannotStart(SystemError("pipe2"));
+  Descriptor read_end(fds[0]), write_end(fds[1]);
+  Descriptor high_write_end = HighCopy(write_end.get());
+  write_end.Reset();
+  const pid_t pid = SpawnChild(high_request.get(), high_write_end.get());
+  // Only the child holds the write end now: its exit is the end of file.
+  high_write_end.Reset();
+  high_request.Reset();
+  Child child(pid, read_end.Release());
 
   // Read while the child writes, so that a result larger than the pipe's buffer cannot block it.
   ChildOutcome outcome;
@@ -463,28 +621,6 @@ Failure DescribeFailure(const ChildOutcome& run) {
 
 // ---------------------------------------------------------------------------------------------------------
 // Input, and reading and checking the result.
-
-// tetgenio frees its arrays with delete[], so they are allocated with new[].
-void FillTetGenInput(const Points& vertices, const Faces& faces, tetgenio* in) {
-  in->firstnumber = 0;
-  in->numberofpoints = static_cast<int>(vertices.rows());
-  in->pointlist = new REAL[static_cast<size_t>(vertices.size())];
-  std::copy(vertices.data(), vertices.data() + vertices.size(), in->pointlist);
-  in->facetlist = new tetgenio::facet[static_cast<size_t>(faces.rows())];
-  in->numberoffacets = static_cast<int>(faces.rows());
-  for (int f = 0; f < faces.rows(); ++f) tetgenio::init(&in->facetlist[f]);
-  // Markers number the faces from 1 (0 reads as "no marker"), so that the -d report names them.
-  in->facetmarkerlist = new int[static_cast<size_t>(faces.rows())];
-  for (int f = 0; f < faces.rows(); ++f) {
-    tetgenio::facet& facet = in->facetlist[f];
-    facet.polygonlist = new tetgenio::polygon[1];
-    tetgenio::init(&facet.polygonlist[0]);
-    facet.numberofpolygons = 1;
-    facet.polygonlist[0].vertexlist = new int[3]{faces(f, 0), faces(f, 1), faces(f, 2)};
-    facet.polygonlist[0].numberofvertices = 3;
-    in->facetmarkerlist[f] = f + 1;
-  }
-}
 
 TetMesh ReadMesh(const ChildOutcome& run, int surface_vertices) {
   TetMesh mesh;
@@ -591,13 +727,11 @@ std::string MeshingSwitches(const TetrahedralizeOptions& options) {
 TetMesh Tetrahedralize(const Points& vertices, const Faces& faces, const TetrahedralizeOptions& options) {
   CheckOptions(options);
   CheckSurface(vertices, faces);
-  tetgenio in;
-  FillTetGenInput(vertices, faces, &in);
   // Far-off deadlines are capped so that the time arithmetic cannot overflow.
   const auto timeout = std::chrono::duration<double>(std::min(options.timeout_seconds, 1e8));
   const Clock::time_point deadline = Clock::now() + std::chrono::duration_cast<Clock::duration>(timeout);
 
-  const ChildOutcome run = RunInChild(&in, MeshingSwitches(options), false, deadline);
+  const ChildOutcome run = RunInChild(vertices, faces, MeshingSwitches(options), false, deadline);
   if (run.timed_out) {
     throw ToError(TetGenFailed(fmt::format(
         "timed out: no result within {} s (timeout_seconds), its process was killed", options.timeout_seconds)));
@@ -612,7 +746,7 @@ TetMesh Tetrahedralize(const Points& vertices, const Faces& faces, const Tetrahe
   }
   // The checks before the run cannot see self-intersections, the usual reason why TetGen fails on a closed
   // surface. Its -d check finds them; it gets what is left of the time.
-  const ChildOutcome diagnosis = RunInChild(&in, "pd", true, deadline);
+  const ChildOutcome diagnosis = RunInChild(vertices, faces, "pd", true, deadline);
   if (diagnosis.complete && diagnosis.header.kind == MessageKind::kIntersections && diagnosis.header.count > 0) {
     std::array<std::int32_t, 2> example;
     std::memcpy(example.data(), diagnosis.payload.data(), sizeof(example));

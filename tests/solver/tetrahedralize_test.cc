@@ -290,11 +290,19 @@ TEST(Tetrahedralize, RunsFromTwoThreadsAtOnce) {
   const Surface cube = LoadObj(DataPath("cube/cube.obj"));
   const TetMesh reference = Tetrahedralize(cube.vertices, cube.faces);
   std::array<TetMesh, 2> meshes;
+  std::array<std::string, 2> errors;
   std::array<std::thread, 2> threads;
   for (size_t i = 0; i < threads.size(); ++i) {
-    threads[i] = std::thread([&, i] { meshes[i] = Tetrahedralize(cube.vertices, cube.faces); });
+    threads[i] = std::thread([&, i] {
+      try {
+        meshes[i] = Tetrahedralize(cube.vertices, cube.faces);
+      } catch (const std::exception& error) {
+        errors[i] = error.what();
+      }
+    });
   }
   for (std::thread& thread : threads) thread.join();
+  for (const std::string& error : errors) EXPECT_EQ(error, "");
   for (const TetMesh& mesh : meshes) {
     EXPECT_TRUE(mesh.vertices == reference.vertices);
     EXPECT_TRUE(mesh.tets == reference.tets);
