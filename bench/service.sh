@@ -48,7 +48,14 @@ for streams in $streams_list; do
   for p in "${pids[@]}"; do wait "$p"; done
   wall=$(/usr/bin/python3 -c "import sys; print(float(sys.argv[2]) - float(sys.argv[1]))" "$start" "$(now)")
   frames=$(cat "$work"/s"$streams"-*.jsonl | grep -c '"frame"' || true)
-  [ "$streams" = 1 ] && one_stream_s="$wall"
+  if [ "$streams" = 1 ]; then
+    one_stream_s="$wall"
+    # The same run seen from both ends: the client's time to the last frame against the server's solve times.
+    read -r served_solve_ms last_received_ms < <(/usr/bin/python3 -c "
+import json, sys
+lines = [json.loads(l) for l in open(sys.argv[1]) if l.strip()]
+print(sum(l['solve_ms'] for l in lines), max(l['received_ms'] for l in lines))" "$work/s1-1.jsonl")
+  fi
   rows+=("$(/usr/bin/python3 -c "
 import sys
 streams, frames, wall = int(sys.argv[1]), int(sys.argv[2]), float(sys.argv[3])
@@ -56,6 +63,11 @@ print(f'| {streams} | {frames} | {wall:.2f} | {frames / wall:.2f} | {1000 * wall
 " "$streams" "$frames" "$wall")")
 done
 
+served_overhead=$(/usr/bin/python3 -c "
+import sys
+solve, received = float(sys.argv[1]), float(sys.argv[2])
+print(f'{100 * (received - solve) / solve:.1f} % ({received - solve:.0f} ms over {solve:.0f} ms)')
+" "${served_solve_ms:-1}" "${last_received_ms:-0}")
 overhead=$(/usr/bin/python3 -c "
 import sys
 local_ms, one = float(sys.argv[1]), sys.argv[2]
@@ -76,5 +88,10 @@ print(f'{100 * (float(one) * 1000 - local_ms) / local_ms:.1f} %' if one else '-'
   echo
   echo "Local solve of the same sweep (sum of per-frame solve times): $(printf '%.0f' "$local_ms") ms."
   echo "Server overhead with one stream (client process start, connection, transfer, server work around the"
-  echo "solve) over the local solve: $overhead."
+  echo "solve) over the local solve: $overhead. The two runs are separate solves on a shared machine, so this"
+  echo "also holds their difference in solve time."
+  echo
+  echo "Service overhead in one run (one stream): the client's time from the call to the last frame against the"
+  echo "sum of the server's per-frame solve times (request decoding, queueing, encoding, transfer and the"
+  echo "client's decoding, with the solve itself taken out): $served_overhead."
 } | tee "$out/service.md"

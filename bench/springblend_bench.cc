@@ -169,6 +169,7 @@ struct Settings {
   std::vector<std::string> rows;  // empty: every row
   int steps = 36;
   bool quick = false;  // also: no reference sweep, so no accuracy column
+  bool profile = false;  // only the default sweep: no baseline, no reference (for perf record)
   fs::path repo = SPRINGBLEND_SOURCE_DIR;
   fs::path shared;  // default: <repo>/../shared/meshes
   fs::path out = "bench-results";
@@ -254,6 +255,7 @@ void MeasureRow(const RowSpec& spec, const Settings& settings, RowResult* result
   const std::vector<Frame> frames = SweepFrames(spec.end_weights, settings.steps);
   std::vector<Points> measured_positions;
   result->measured = RunSweep(rig, WithTolerances(DefaultOptions()), frames, spec.name + " default", &measured_positions);
+  if (settings.profile) return;
   result->baseline = RunSweep(rig, WithTolerances(BaselineOptions()), frames, spec.name + " baseline", nullptr);
   if (!settings.quick) {
     std::vector<Points> reference_positions;
@@ -605,6 +607,8 @@ int Main(int argc, char** argv) {
   CLI::Option* steps = app.add_option("--steps", settings.steps, "frames per sweep, including frame 0 (default 36)")
                            ->check(CLI::Range(2, 100000));
   app.add_flag("--quick", settings.quick, "6 frames (unless --steps is given) and no reference sweep");
+  app.add_flag("--profile", settings.profile,
+               "run only the default solver's sweep (no baseline, no reference), e.g. under perf record");
   app.add_option("--repo", settings.repo, "the springblend source tree (for tests/data and git describe)");
   app.add_option("--shared", settings.shared, "the shared meshes (default: <repo>/../shared/meshes)");
   app.add_option("--out", settings.out, "output directory for bench.md, bench.json and the plot");

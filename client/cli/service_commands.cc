@@ -182,6 +182,9 @@ int RunSolve(const RemoteArgs& args) {
   bool all_converged = true;
   const int total = request.frames_size();
   client.Solve(request, [&](const v1::SolvedFrame& frame) {
+    // When the frame arrived, from the start of the call (before the OBJ below is written).
+    const double received_ms =
+        std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - start).count();
     WriteObj((fs::path(args.out) / fmt::format("frame_{:04d}.obj", frame.index())).string(),
              Client::Decode(frame.positions()), faces);
     const v1::FrameSummary& s = frame.summary();
@@ -191,7 +194,7 @@ int RunSolve(const RemoteArgs& args) {
                                  {"newton_iterations", s.newton_iterations()}, {"residual", s.residual()},
                                  {"contacts", s.contacts()}, {"pins", s.pins()},
                                  {"inverted_tetrahedra", s.inverted_tetrahedra()}, {"solve_ms", s.solve_ms()},
-                                 {"served_by", s.served_by()}};
+                                 {"received_ms", received_ms}, {"served_by", s.served_by()}};
     if (progress) {
       const double seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
       const int done = static_cast<int>(frame.index()) + 1;

@@ -8,6 +8,7 @@
 #include <Eigen/Dense>
 #include <algorithm>
 #include <cmath>
+#include <deque>
 #include <limits>
 #include <optional>
 
@@ -165,7 +166,8 @@ namespace {
 constexpr size_t kGrain = 2048;
 constexpr double kNoHessian = -1.0;  // Assemble: forces only
 constexpr double kNoProgress = 1e-15;  // a step this short (of the diagonal) changes nothing
-constexpr double kMaxForcing = 0.1;    // inexact Newton: the loosest relative accuracy of a linear solve
+constexpr double kMaxForcing = 0.1;
+constexpr size_t kPredictorFrames = 3;  // the quadratic predictor's nodes    // inexact Newton: the loosest relative accuracy of a linear solve
 
 double Elapsed(std::chrono::steady_clock::time_point since) {
   return std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - since).count();
@@ -198,17 +200,15 @@ class Solver::Impl {
   }
 
   SolveSummary Solve(const Frame& frame, Points* positions);
-  void Reset() { has_previous_ = has_before_ = false; }
+  void Reset() { past_.clear(); }
   void SetWarmStart(const Points& all_vertices) {
     if (all_vertices.rows() != rig_->num_vertices()) {
       throw Error(ErrorCode::kInvalidInput,
                   fmt::format("a warm start needs {} vertices, got {}", rig_->num_vertices(), all_vertices.rows()));
     }
     previous_ = all_vertices;
-    previous_motion_.reset();
-    previous_weights_.clear();
-    has_previous_ = true;
-    has_before_ = false;
+    past_.clear();
+    past_.push_front(PastFrame{all_vertices, std::nullopt, {}, false});
   }
   const Points& all_positions() const { return previous_; }
   void SetColliders(std::vector<Collider> colliders) {
@@ -240,7 +240,7 @@ class Solver::Impl {
   std::vector<std::pair<int, Eigen::Vector3d>> HeldVertices(const Frame& frame, const Points& linear,
                                                             std::optional<internal::AnchorMotion>* motion) const;
   void PlaceStart(const Points& linear, const std::optional<internal::AnchorMotion>& motion,
-                  const std::vector<double>& weights);
+                  const std::vector<double>& weights, const std::vector<std::pair<int, Eigen::Vector3d>>& held);
   // Newton's method from x_ with the held coordinates fixed_dof_; adds to the summary's counters.
   void Newton(SolveSummary& summary);
   // The Newton direction step_ from force_ at x_: a fresh factorization and a direct solve, or conjugate
@@ -299,15 +299,16 @@ class Solver::Impl {
   std::vector<char> base_fixed_dof_;  // held coordinates of this frame before contacts
   Eigen::VectorXd reaction_;          // spring force on every coordinate, held ones included
 
-  Points previous_;
-  std::optional<internal::AnchorMotion> previous_motion_;  // the anchor's motion in the previous frame
-  bool has_previous_ = false;
-  std::vector<double> previous_weights_;
-  // The frame before the previous one, for the secant predictor.
-  Points before_;
-  std::optional<internal::AnchorMotion> before_motion_;
-  std::vector<double> before_weights_;
-  bool has_before_ = false;
+  Points previous_;  // the last solution (all_positions)
+  // The warm start and the frames before it, newest first: solutions, the anchor's motion in each frame and
+  // their weights (empty for a SetWarmStart), for the predictor. Consecutive frames only, at most three.
+  struct PastFrame {
+    Points positions;
+    std::optional<internal::AnchorMotion> motion;
+    std::vector<double> weights;
+    bool node;  // a converged frame: the predictor may extrapolate through it
+  };
+  std::deque<PastFrame> past_;
 };
 
 void Solver::Impl::PrepareFrame(const std::vector<double>& weights) {
@@ -838,15 +839,17 @@ std::vector<std::pair<int, Eigen::Vector3d>> Solver::Impl::HeldVertices(
 }
 
 void Solver::Impl::PlaceStart(const Points& linear, const std::optional<internal::AnchorMotion>& motion,
-                              const std::vector<double>& weights) {
+                              const std::vector<double>& weights,
+                              const std::vector<std::pair<int, Eigen::Vector3d>>& held) {
   // The previous frame's equilibrium (warm start; carried along with the anchor's motion since then) or
-  // the linear blendshape. When the weights keep moving in the same direction as between the two previous
-  // frames (a sweep, a slider being dragged), the start is extrapolated along the solutions' own motion
-  // (a secant predictor): Newton then starts O(h^2) rather than O(h) away from the equilibrium.
+  // the linear blendshape. When the weights keep moving along one line, as over the two or three previous
+  // frames (a sweep, a slider being dragged), the start is extrapolated along the solutions' own motion by
+  // the polynomial through them (a secant, then a quadratic predictor): Newton then starts O(h^2), or
+  // O(h^3), rather than O(h) away from the equilibrium.
   const Rig& rig = *rig_;
   const int n = rig.num_vertices();
   x_.resize(3 * n);
-  if (!(options_.warm_start && has_previous_)) {
+  if (!options_.warm_start || past_.empty()) {
     for (int v = 0; v < n; ++v) x_.segment<3>(3 * v) = linear.row(v).transpose();
     return;
   }
@@ -858,30 +861,65 @@ void Solver::Impl::PlaceStart(const Points& linear, const std::optional<internal
   const auto to_world = [&](const Eigen::Vector3d& l) {
     return motion ? Eigen::Vector3d(motion->rotation * l + c + motion->offset) : l;
   };
-  const bool anchored = motion.has_value() && previous_motion_.has_value();
-  double s = 0.0;
-  if (options_.extrapolate && has_before_ && before_weights_.size() == weights.size() && previous_weights_.size() == weights.size() &&
-      anchored == before_motion_.has_value()) {
-    double now_dot_before = 0.0, before_sq = 0.0, now_sq = 0.0;
-    for (size_t t = 0; t < weights.size(); ++t) {
-      const double now = weights[t] - previous_weights_[t];
-      const double before = previous_weights_[t] - before_weights_[t];
-      now_dot_before += now * before;
-      before_sq += before * before;
-      now_sq += now * now;
-    }
-    // Same direction (within about 8 degrees) and at most twice as far: extrapolate; else plain warm start.
-    if (before_sq > 0.0 && now_dot_before > 0.99 * std::sqrt(before_sq * now_sq)) {
-      s = std::min(2.0, now_dot_before / before_sq);
+  const bool anchored = motion.has_value() && past_[0].motion.has_value();
+
+  // Nodes of the predictor: the positions t_k of the past frames' weights on the line from the previous
+  // weights (t = 0) to this frame's (t = 1). A past frame joins while its weights lie on that line (within
+  // about 8 degrees) and further back than the one before it.
+  std::vector<double> nodes = {0.0};
+  const std::vector<double>& w0 = past_[0].weights;
+  if (options_.extrapolate && past_[0].node && w0.size() == weights.size()) {
+    double d_sq = 0.0;
+    for (size_t t = 0; t < weights.size(); ++t) d_sq += (weights[t] - w0[t]) * (weights[t] - w0[t]);
+    for (size_t k = 1; k < past_.size() && d_sq > 0.0; ++k) {
+      const std::vector<double>& wk = past_[k].weights;
+      if (!past_[k].node || wk.size() != weights.size() || past_[k].motion.has_value() != anchored) break;
+      double along = 0.0, off_sq = 0.0;
+      for (size_t t = 0; t < weights.size(); ++t) along += (wk[t] - w0[t]) * (weights[t] - w0[t]);
+      const double tk = along / d_sq;
+      for (size_t t = 0; t < weights.size(); ++t) {
+        const double off = wk[t] - w0[t] - tk * (weights[t] - w0[t]);
+        off_sq += off * off;
+      }
+      // The spacing to the node before: this frame's step is at most twice the last frame's; further back,
+      // steps vary by at most a factor of 2.
+      const double spacing = nodes.back() - tk;  // > 0: further back
+      const double last_spacing = k == 1 ? 1.0 : nodes[k - 2] - nodes[k - 1];
+      const bool spaced = k == 1 ? 2.0 * spacing >= 1.0 : spacing <= 2.0 * last_spacing && 2.0 * spacing >= last_spacing;
+      if (!(spacing > 0.0) || !spaced || off_sq > 0.02 * tk * tk * d_sq) break;
+      nodes.push_back(tk);
     }
   }
+  // The polynomial through the first `order` + 1 nodes, at t = 1, with this frame's held vertices.
   const std::optional<internal::AnchorMotion> none;
-  const auto& previous_frame = anchored ? previous_motion_ : none;
-  const auto& before_frame = anchored ? before_motion_ : none;
-  for (int v = 0; v < n; ++v) {
-    Eigen::Vector3d local = to_local(previous_.row(v).transpose(), previous_frame);
-    if (s > 0.0) local += s * (local - to_local(before_.row(v).transpose(), before_frame));
-    x_.segment<3>(3 * v) = anchored ? to_world(local) : local;
+  const auto predict = [&](size_t order, Eigen::VectorXd* x) {
+    std::vector<double> lagrange(order + 1, 1.0);
+    for (size_t i = 0; i <= order; ++i) {
+      for (size_t j = 0; j <= order; ++j) {
+        if (j != i) lagrange[i] *= (1.0 - nodes[j]) / (nodes[i] - nodes[j]);
+      }
+    }
+    for (int v = 0; v < n; ++v) {
+      Eigen::Vector3d local = Eigen::Vector3d::Zero();
+      for (size_t k = 0; k <= order; ++k) {
+        local += lagrange[k] * to_local(past_[k].positions.row(v).transpose(), anchored ? past_[k].motion : none);
+      }
+      x->segment<3>(3 * v) = anchored ? to_world(local) : local;
+    }
+    for (const auto& [v, p] : held) x->segment<3>(3 * v) = p;
+  };
+  // Where the path bends sharply (a lip buckles, a contact starts) a higher order can overshoot: of the
+  // predictors of every order, Newton starts from the one with the least spring energy.
+  predict(nodes.size() - 1, &x_);
+  if (nodes.size() == 1) return;
+  double best = Energy(x_);
+  for (size_t order = nodes.size() - 1; order-- > 0;) {
+    predict(order, &trial_);
+    const double energy = Energy(trial_);
+    if (energy < best) {
+      best = energy;
+      x_.swap(trial_);
+    }
   }
 }
 
@@ -913,7 +951,7 @@ SolveSummary Solver::Impl::Solve(const Frame& frame, Points* positions) {
            : held.empty()                      ? BoundaryMode::kFloating
                                                : BoundaryMode::kPartiallyFixed;
   }
-  PlaceStart(linear, motion, frame.weights);
+  PlaceStart(linear, motion, frame.weights, held);
   std::fill(fixed_dof_.begin(), fixed_dof_.end(), 0);
   for (const auto& [v, p] : held) {
     x_.segment<3>(3 * v) = p;
@@ -967,18 +1005,12 @@ SolveSummary Solver::Impl::Solve(const Frame& frame, Points* positions) {
     internal::AlignRigidly(linear.topRows(rig.num_surface_vertices()), &solved);
   }
   if (summary.termination != Termination::kNumericalFailure) {
-    has_before_ = has_previous_ && !previous_weights_.empty() && summary.converged();
-    if (has_before_) {
-      before_.swap(previous_);
-      before_motion_ = previous_motion_;
-      before_weights_.swap(previous_weights_);
-    }
+    // A frame that did not converge is a warm start, but no node for the predictor.
+    past_.push_front(PastFrame{solved, motion, frame.weights, summary.converged()});
+    if (past_.size() > kPredictorFrames) past_.pop_back();
     previous_ = solved;
-    previous_motion_ = motion;
-    previous_weights_ = frame.weights;
-    has_previous_ = true;
   } else {
-    has_previous_ = has_before_ = false;  // never warm-start from a broken state
+    past_.clear();  // never warm-start from a broken state
   }
   *positions = solved.topRows(rig.num_surface_vertices());
   if (summary.termination == Termination::kConverged) summary.message = "converged";

@@ -68,7 +68,8 @@ struct SolveOptions {
   // first frame, the solve starts from the linear blendshape.
   bool warm_start = true;
   // With warm_start: when the weights keep moving in the direction of the two previous frames (a sweep, a
-  // dragged slider), extrapolate the start along the previous solutions' motion (a secant predictor).
+  // dragged slider), extrapolate the start along the previous solutions' motion: the polynomial through the
+  // last two or three (secant or quadratic predictor), or a lower order where that starts with less energy.
   bool extrapolate = true;
   // Contact rounds per frame (solve, catch penetrating vertices, solve again) before giving up. [1, 1000]
   int max_contact_rounds = 30;
