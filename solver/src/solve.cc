@@ -287,6 +287,9 @@ class Solver::Impl {
   } kept_;
   std::vector<double> spring_product_;  // per spring: H_q (v_a - v_b)
   Eigen::VectorXd cg_residual_, cg_preconditioned_, cg_direction_, cg_product_;
+  // A direction of negative curvature of the true Hessian that the last conjugate gradients met.
+  Eigen::VectorXd negative_direction_;
+  bool has_negative_direction_ = false;
   bool absolute_projection_ = false;
 
   Eigen::VectorXd x_, force_, step_, trial_;
@@ -678,7 +681,13 @@ bool Solver::Impl::PreconditionedCg(double forcing, SolveSummary& summary) {
     HessianProduct(cg_direction_, &cg_product_);
     ++summary.cg_iterations;
     const double curvature = cg_direction_.dot(cg_product_);
-    if (!(curvature > 0.0) || !std::isfinite(curvature)) return false;  // indefinite along d
+    if (!(curvature > 0.0) || !std::isfinite(curvature)) {  // indefinite along d
+      if (std::isfinite(curvature) && cg_direction_.allFinite()) {
+        negative_direction_ = cg_direction_;
+        has_negative_direction_ = true;
+      }
+      return false;
+    }
     const double alpha = rz / curvature;
     step_ += alpha * cg_direction_;
     cg_residual_ -= alpha * cg_product_;
@@ -692,6 +701,7 @@ bool Solver::Impl::PreconditionedCg(double forcing, SolveSummary& summary) {
 }
 
 bool Solver::Impl::NewtonDirection(double forcing, SolveSummary& summary) {
+  has_negative_direction_ = false;
   if (options_.reuse_factorization && PreconditionerUsable()) {
     const int cg_before = summary.cg_iterations;
     // The per-spring blocks of the last Assemble are the true Hessian's at x_ (kAbsolute: its absolute
@@ -768,6 +778,25 @@ void Solver::Impl::Newton(SolveSummary& summary) {
     longest = std::sqrt(longest);
     const double max_move = options_.max_step_fraction * rig.summary().mean_rest_length;
     if (longest > max_move) step_ *= max_move / longest;
+    if (has_negative_direction_) {
+      // On a saddle (a buckling lip, a compressed fold) the projected Newton step barely moves along the
+      // unstable mode, and Newton crawls off it over dozens of iterations. The energy falls fastest along the
+      // negative curvature the conjugate gradients met: add it, downhill and as long as a step may be, and
+      // let the line search below shorten the sum (cat: 35 -> 15 Newton iterations per step).
+      double d_longest = 0.0;
+      for (int v = 0; v < n; ++v) {
+        d_longest = std::max(d_longest, negative_direction_.segment<3>(3 * v).squaredNorm());
+      }
+      d_longest = std::sqrt(d_longest);
+      if (d_longest > 0.0) {
+        const double sign = force_.dot(negative_direction_) >= 0.0 ? 1.0 : -1.0;
+        step_ += (sign * max_move / d_longest) * negative_direction_;
+        longest = 0.0;
+        for (int v = 0; v < n; ++v) longest = std::max(longest, step_.segment<3>(3 * v).squaredNorm());
+        longest = std::sqrt(longest);
+        if (longest > max_move) step_ *= max_move / longest;
+      }
+    }
 
     // Backtracking line search on the energy (Armijo). Near convergence the energy change drops below
     // its round-off; there a step is judged by the force it leaves instead.
