@@ -778,7 +778,7 @@ void Solver::Impl::Newton(SolveSummary& summary) {
     longest = std::sqrt(longest);
     const double max_move = options_.max_step_fraction * rig.summary().mean_rest_length;
     if (longest > max_move) step_ *= max_move / longest;
-    if (has_negative_direction_) {
+    if (has_negative_direction_ && options_.follow_negative_curvature) {
       // On a saddle (a buckling lip, a compressed fold) the projected Newton step barely moves along the
       // unstable mode, and Newton crawls off it over dozens of iterations. The energy falls fastest along the
       // negative curvature the conjugate gradients met: add it, downhill and as long as a step may be, and
