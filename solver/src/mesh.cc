@@ -8,17 +8,17 @@
 #include <fmt/os.h>
 
 #include <algorithm>
+#include <array>
 #include <cctype>
-#include <cstdint>
-#include <vector>
-#include <iterator>
-#include <cstring>
 #include <cmath>
 #include <filesystem>
 #include <fstream>
+#include <iterator>
 #include <mutex>
 #include <sstream>
+#include <vector>
 
+#include "off_reader.h"
 #include "springblend/error.h"
 
 namespace springblend {
@@ -37,32 +37,33 @@ class RawImporter final : public OpenMesh::IO::ImporterT<PolyMesh> {
   explicit RawImporter(PolyMesh& mesh) : ImporterT<PolyMesh>(mesh) {}
 
   OpenMesh::VertexHandle add_vertex(const OpenMesh::Vec3f& p) override {
-    points.push_back({p[0], p[1], p[2]});
+    soup.points.push_back({p[0], p[1], p[2]});
     return ImporterT<PolyMesh>::add_vertex(p);
   }
   OpenMesh::VertexHandle add_vertex(const OpenMesh::Vec3d& p) override {
-    points.push_back({p[0], p[1], p[2]});
+    soup.points.push_back({p[0], p[1], p[2]});
     return ImporterT<PolyMesh>::add_vertex(p);
   }
   // The PLY reader adds a vertex first and sets its position afterwards.
   OpenMesh::VertexHandle add_vertex() override {
-    points.push_back({0.0, 0.0, 0.0});
+    soup.points.push_back({0.0, 0.0, 0.0});
     return ImporterT<PolyMesh>::add_vertex();
   }
   void set_point(OpenMesh::VertexHandle vh, const OpenMesh::Vec3f& p) override {
-    if (vh.idx() >= 0 && static_cast<size_t>(vh.idx()) < points.size()) points[vh.idx()] = {p[0], p[1], p[2]};
+    if (vh.idx() >= 0 && static_cast<size_t>(vh.idx()) < soup.points.size()) {
+      soup.points[vh.idx()] = {p[0], p[1], p[2]};
+    }
     ImporterT<PolyMesh>::set_point(vh, p);
   }
   OpenMesh::FaceHandle add_face(const VHandles& indices) override {
     std::vector<int> face;
     face.reserve(indices.size());
     for (const auto& vh : indices) face.push_back(vh.idx());
-    polygons.push_back(std::move(face));
+    soup.polygons.push_back(std::move(face));
     return ImporterT<PolyMesh>::add_face(indices);
   }
 
-  std::vector<std::array<double, 3>> points;
-  std::vector<std::vector<int>> polygons;
+  PolygonSoup soup;
 };
 
 void QuietOpenMesh() {
@@ -81,9 +82,9 @@ std::string Lowercase(std::string s) {
   return s;
 }
 
-// OpenMesh 9.0's PLY and OFF readers trust their headers: a PLY header without end_header loops forever,
-// garbled PLY headers crash it, and a binary OFF header's counts are allocated as given. Headers are
-// checked here first, strictly, so bad files get an error naming the line and never reach those readers.
+// OpenMesh 9.0's PLY reader trusts its header: a header without end_header loops forever and garbled ones
+// crash it. The header is checked here first, strictly, so a bad file gets an error naming the line and never
+// reaches that reader. (Its OFF reader trusted the counts as well; OFF has a reader of its own, off_reader.cc.)
 void CheckPlyHeader(const std::string& text, const std::string& source) {
   constexpr size_t kMaxHeader = 1 << 16;
   const auto fail = [&](const std::string& what) {
@@ -150,101 +151,27 @@ void CheckPlyHeader(const std::string& text, const std::string& source) {
   if (!format) fail("no format line");
 }
 
-void CheckOffHeader(const std::string& text, const std::string& source) {
-  const auto fail = [&](const std::string& what) {
-    throw Error(ErrorCode::kInvalidInput, fmt::format("{}: OFF header: {}", source, what));
-  };
-  std::istringstream in(text);
-  std::string keyword;
-  in >> keyword;
-  const size_t off = keyword.rfind("OFF");
-  if (off == std::string::npos || off + 3 != keyword.size() || off > 5) fail("the file does not start with OFF");
-  std::string next;
-  const std::streampos after_keyword = in.tellg();
-  in >> next;
-  if (next == "BINARY") {
-    // Counts follow as binary 32-bit integers after the line break.
-    const size_t start = text.find('\n', static_cast<size_t>(in.tellg()));
-    if (start == std::string::npos || text.size() < start + 1 + 12) fail("binary counts are missing");
-    std::int32_t counts[3];
-    std::memcpy(counts, text.data() + start + 1, sizeof(counts));
-    const size_t rest = text.size() - start - 13;
-    if (counts[0] < 0 || counts[1] < 0 || static_cast<unsigned long long>(counts[0]) * 12 > rest ||
-        static_cast<unsigned long long>(counts[1]) * 4 > rest) {
-      fail(fmt::format("{} vertices and {} faces do not fit in the file's {} data bytes", counts[0], counts[1],
-                       rest));
-    }
-    return;
-  }
-  in.clear();
-  in.seekg(after_keyword);
-  // Skip comment lines, then the counts: vertices faces edges.
-  std::string line;
-  long long vertices = -1, faces = -1;
-  while (std::getline(in, line)) {
-    const size_t first = line.find_first_not_of(" \t\r");
-    if (first == std::string::npos || line[first] == '#') continue;
-    std::istringstream counts(line);
-    if (!(counts >> vertices >> faces)) vertices = faces = -1;
-    break;
-  }
-  const size_t limit = text.size();
-  if (vertices < 0 || faces < 0 || static_cast<unsigned long long>(vertices) > limit ||
-      static_cast<unsigned long long>(faces) > limit) {
-    fail(fmt::format("counts ({} vertices, {} faces) are missing or more than the file's {} bytes can hold",
-                     vertices, faces, limit));
-  }
-}
-
-}  // namespace
-
-namespace {
-TriangleMesh ReadCheckedMesh(std::istream& in, const std::string& format, const std::string& source);
-
-TriangleMesh ReadMesh(std::istream& in, const std::string& format, const std::string& source) {
-  QuietOpenMesh();
-  if (format == "ply" || format == "off") {
-    // Read whole (these are the CLI's formats; the server takes OBJ) to check the header before OpenMesh.
-    std::string text((std::istreambuf_iterator<char>(in)), std::istreambuf_iterator<char>());
-    if (format == "ply") {
-      CheckPlyHeader(text, source);
-    } else {
-      CheckOffHeader(text, source);
-    }
-    std::istringstream checked(text);
-    return ReadCheckedMesh(checked, format, source);
-  }
-  return ReadCheckedMesh(in, format, source);
-}
-
-TriangleMesh ReadCheckedMesh(std::istream& in, const std::string& format, const std::string& source) {
-  PolyMesh scratch;
-  RawImporter importer(scratch);
-  OpenMesh::IO::Options options;
-  if (!OpenMesh::IO::IOManager().read(in, format, importer, options)) {
-    throw Error(ErrorCode::kInvalidInput, source + ": OpenMesh could not parse it as ." + format);
-  }
-  const std::string& path = source;
-
+// Fan-triangulates the polygons as listed (corner 0 with each following pair), then validates.
+TriangleMesh Triangulate(const PolygonSoup& soup, const std::string& path) {
+  const auto& [points, polygons] = soup;
   TriangleMesh mesh;
   mesh.source = path;
-  mesh.name = source;
-  mesh.vertices.resize(static_cast<Eigen::Index>(importer.points.size()), 3);
-  for (size_t i = 0; i < importer.points.size(); ++i) {
-    for (int c = 0; c < 3; ++c) mesh.vertices(static_cast<Eigen::Index>(i), c) = importer.points[i][c];
+  mesh.name = path;
+  mesh.vertices.resize(static_cast<Eigen::Index>(points.size()), 3);
+  for (size_t i = 0; i < points.size(); ++i) {
+    for (int c = 0; c < 3; ++c) mesh.vertices(static_cast<Eigen::Index>(i), c) = points[i][c];
   }
   size_t triangles = 0;
-  for (const auto& polygon : importer.polygons) {
+  for (const auto& polygon : polygons) {
     if (polygon.size() < 3) {
       throw Error(ErrorCode::kInvalidInput,
-                  fmt::format("{}: face {} has {} corners", path, &polygon - importer.polygons.data(),
-                              polygon.size()));
+                  fmt::format("{}: face {} has {} corners", path, &polygon - polygons.data(), polygon.size()));
     }
     triangles += polygon.size() - 2;
   }
   mesh.faces.resize(static_cast<Eigen::Index>(triangles), 3);
   Eigen::Index f = 0;
-  for (const auto& polygon : importer.polygons) {
+  for (const auto& polygon : polygons) {
     if (polygon.size() > 3) ++mesh.polygons_split;
     for (size_t k = 1; k + 1 < polygon.size(); ++k, ++f) {
       mesh.faces.row(f) << polygon[0], polygon[k], polygon[k + 1];
@@ -252,6 +179,28 @@ TriangleMesh ReadCheckedMesh(std::istream& in, const std::string& format, const 
   }
   ValidateMesh(mesh);
   return mesh;
+}
+
+TriangleMesh ReadWithOpenMesh(std::istream& in, const std::string& format, const std::string& source) {
+  PolyMesh scratch;
+  RawImporter importer(scratch);
+  OpenMesh::IO::Options options;
+  if (!OpenMesh::IO::IOManager().read(in, format, importer, options)) {
+    throw Error(ErrorCode::kInvalidInput, source + ": OpenMesh could not parse it as ." + format);
+  }
+  return Triangulate(importer.soup, source);
+}
+
+TriangleMesh ReadMesh(std::istream& in, const std::string& format, const std::string& source) {
+  QuietOpenMesh();
+  if (format == "obj" || format == "stl") return ReadWithOpenMesh(in, format, source);
+  // Read whole (these are the CLI's formats; the server takes OBJ): PLY to check its header before OpenMesh,
+  // OFF for our own reader.
+  std::string text((std::istreambuf_iterator<char>(in)), std::istreambuf_iterator<char>());
+  if (format == "off") return Triangulate(ReadOff(text, source), source);
+  CheckPlyHeader(text, source);
+  std::istringstream checked(std::move(text));
+  return ReadWithOpenMesh(checked, format, source);
 }
 
 }  // namespace
