@@ -14,8 +14,10 @@
 #include <filesystem>
 #include <fstream>
 #include <iterator>
+#include <limits>
 #include <mutex>
 #include <sstream>
+#include <string_view>
 #include <vector>
 
 #include "off_reader.h"
@@ -82,21 +84,39 @@ std::string Lowercase(std::string s) {
   return s;
 }
 
-// OpenMesh 9.0's PLY reader trusts its header: a header without end_header loops forever and garbled ones
-// crash it. The header is checked here first, strictly, so a bad file gets an error naming the line and never
-// reaches that reader. (Its OFF reader trusted the counts as well; OFF has a reader of its own, off_reader.cc.)
-void CheckPlyHeader(const std::string& text, const std::string& source) {
+// OpenMesh 9.0's PLY reader trusts its header: it reads it word by word until the word end_header, and a word it
+// cannot parse as the number it expects (a version, a count), or the end of the file, makes it loop for ever;
+// garbled headers crash it. The header is checked here first, strictly and line by line, so a bad file gets an
+// error naming the line and never reaches that reader; `obj_info` lines, whose words OpenMesh would read as
+// keywords, become comments. Returns the text to hand to OpenMesh. (Its OFF reader trusted the counts as well;
+// OFF has a reader of its own, off_reader.cc.)
+std::string CheckPly(std::string text, const std::string& source) {
   constexpr size_t kMaxHeader = 1 << 16;
   const auto fail = [&](const std::string& what) {
     throw Error(ErrorCode::kInvalidInput, fmt::format("{}: PLY header: {}", source, what));
   };
-  const size_t end = text.find("end_header");
-  if (end == std::string::npos || end > kMaxHeader) fail("no end_header line in the first 64 KiB");
-  const size_t body = text.find('\n', end);
-  const size_t body_bytes = body == std::string::npos ? 0 : text.size() - body - 1;
+  const auto trimmed = [](std::string_view line) {
+    const size_t first = line.find_first_not_of(" \t\r\v\f");
+    if (first == std::string_view::npos) return std::string_view();
+    return line.substr(first, line.find_last_not_of(" \t\r\v\f") - first + 1);
+  };
+  // The header ends at the first line that is end_header alone (not at those letters in a comment).
+  size_t end = std::string::npos, body = text.size();
+  for (size_t at = 0; at < text.size() && at <= kMaxHeader;) {
+    const size_t eol = std::min(text.find('\n', at), text.size());
+    if (trimmed(std::string_view(text).substr(at, eol - at)) == "end_header") {
+      end = at;
+      body = std::min(eol + 1, text.size());
+      break;
+    }
+    at = eol + 1;
+  }
+  if (end == std::string::npos) fail("no end_header line in the first 64 KiB");
+  const size_t body_bytes = text.size() - body;
   std::istringstream header(text.substr(0, end));
   std::string line;
   int number = 0;
+  size_t line_start = 0;
   bool format = false;
   bool element = false;
   static const std::vector<std::string> kTypes = {"char",  "uchar", "short",  "ushort",  "int",    "uint",
@@ -105,12 +125,11 @@ void CheckPlyHeader(const std::string& text, const std::string& source) {
   const auto known_type = [&](const std::string& t) {
     return std::find(kTypes.begin(), kTypes.end(), t) != kTypes.end();
   };
-  const auto is_count = [](const std::string& t) {
-    return !t.empty() && t.size() <= 12 && std::all_of(t.begin(), t.end(), [](unsigned char c) { return std::isdigit(c); });
+  const auto digits = [](std::string_view t) {
+    return !t.empty() && std::all_of(t.begin(), t.end(), [](unsigned char c) { return std::isdigit(c); });
   };
-  while (std::getline(header, line)) {
+  for (; std::getline(header, line); line_start += line.size() + 1) {
     ++number;
-    if (!line.empty() && line.back() == '\r') line.pop_back();
     std::istringstream split(line);
     std::vector<std::string> w;
     for (std::string word; split >> word;) w.push_back(word);
@@ -118,14 +137,24 @@ void CheckPlyHeader(const std::string& text, const std::string& source) {
       if (w.size() != 1 || w[0] != "ply") fail("the first line is not 'ply'");
       continue;
     }
-    if (w.empty() || w[0] == "comment" || w[0] == "obj_info") continue;
-    if (w[0] == "format") {
-      if (w.size() != 3 || (w[1] != "ascii" && w[1] != "binary_little_endian" && w[1] != "binary_big_endian")) {
+    if (w.empty()) continue;
+    if (!format && w[0] != "format") fail(fmt::format("line {}: the format line must come first", number));
+    if (w[0] == "comment") continue;
+    if (w[0] == "obj_info") {
+      text.replace(line_start + line.find("obj_info"), 8, "comment ");
+    } else if (w[0] == "format") {
+      const size_t point = w.size() == 3 ? w[2].find('.') : 0;
+      if (format || w.size() != 3 ||
+          (w[1] != "ascii" && w[1] != "binary_little_endian" && w[1] != "binary_big_endian") ||
+          !digits(std::string_view(w[2]).substr(0, point)) ||
+          (point != std::string::npos && !digits(std::string_view(w[2]).substr(point + 1)))) {
         fail(fmt::format("line {}: not 'format ascii|binary_little_endian|binary_big_endian VERSION'", number));
       }
       format = true;
     } else if (w[0] == "element") {
-      if (w.size() != 3 || !is_count(w[2])) fail(fmt::format("line {}: not 'element NAME COUNT'", number));
+      if (w.size() != 3 || !digits(w[2]) || w[2].size() > 10 || std::stoull(w[2]) > 0xFFFFFFFFull) {
+        fail(fmt::format("line {}: not 'element NAME COUNT'", number));
+      }
       const unsigned long long count = std::stoull(w[2]);
       if (count > body_bytes) {
         fail(fmt::format("line {}: element '{}' has a count ({}) the file's {} data bytes cannot hold", number,
@@ -149,6 +178,66 @@ void CheckPlyHeader(const std::string& text, const std::string& source) {
   }
   if (number == 0) fail("empty");
   if (!format) fail("no format line");
+  return text;
+}
+
+// OpenMesh 9.0's OBJ reader, on two kinds of lines, does what no client's file may make the server do:
+// - `mtllib PATH` opens PATH on this machine (relative to the working directory when reading from memory) and
+//   reads it whole: `mtllib /dev/zero` allocates until the process dies, a FIFO blocks it for ever, and the
+//   materials it loads live in the reader's one shared instance, which concurrent loads would race on. A rig
+//   never uses materials, so those lines are blanked before OpenMesh sees them.
+// - a face corner without a vertex index (`f /2 3 1`) fails an assertion (abort) or, built without assertions,
+//   reads before an empty vector; a corner that is not a number leaves the index uninitialised. Corners are
+//   checked first: V, V/VT, V//VN or V/VT/VN, each a decimal integer that fits an int.
+// Lines are taken as OpenMesh takes them: split at '\n', trimmed, '#' starts a comment, the first word is the
+// keyword. Returns the text to hand to OpenMesh.
+std::string CheckObj(std::string text, const std::string& source) {
+  const auto is_space = [](char c) { return std::isspace(static_cast<unsigned char>(c)) != 0; };
+  const auto is_index = [](std::string_view v, bool required) {
+    if (v.empty()) return !required;
+    if (v[0] == '+' || v[0] == '-') v.remove_prefix(1);
+    if (v.empty() || v.size() > 10 || !std::all_of(v.begin(), v.end(), [](char c) { return c >= '0' && c <= '9'; })) {
+      return false;
+    }
+    return std::stoll(std::string(v)) <= std::numeric_limits<int>::max();
+  };
+  int number = 0;
+  for (size_t at = 0; at < text.size(); ++number) {
+    const size_t end = std::min(text.find('\n', at), text.size());
+    const std::string_view line(text.data() + at, end - at);
+    size_t word = 0;
+    while (word < line.size() && is_space(line[word])) ++word;
+    size_t word_end = word;
+    while (word_end < line.size() && !is_space(line[word_end])) ++word_end;
+    const std::string_view keyword = line.substr(word, word_end - word);
+    if (keyword == "mtllib") {
+      std::fill(text.begin() + static_cast<std::ptrdiff_t>(at), text.begin() + static_cast<std::ptrdiff_t>(end), ' ');
+    } else if (keyword == "f") {
+      for (size_t i = word_end; i < line.size();) {
+        while (i < line.size() && is_space(line[i])) ++i;
+        const size_t start = i;
+        while (i < line.size() && !is_space(line[i])) ++i;
+        if (i == start) break;
+        const std::string_view corner = line.substr(start, i - start);
+        const size_t first = corner.find('/');
+        const size_t second = first == std::string_view::npos ? first : corner.find('/', first + 1);
+        const bool ok =
+            is_index(corner.substr(0, first), true) &&
+            (first == std::string_view::npos ||
+             (is_index(corner.substr(first + 1, second == std::string_view::npos ? second : second - first - 1),
+                       false) &&
+              (second == std::string_view::npos || is_index(corner.substr(second + 1), false))));
+        if (!ok) {
+          throw Error(ErrorCode::kInvalidInput,
+                      fmt::format("{}: line {}: face corner '{}' is not V, V/VT, V//VN or V/VT/VN (integer "
+                                  "indices, V required)",
+                                  source, number + 1, corner.substr(0, 32)));
+        }
+      }
+    }
+    at = end + 1;
+  }
+  return text;
 }
 
 // Fan-triangulates the polygons as listed (corner 0 with each following pair), then validates.
@@ -193,12 +282,11 @@ TriangleMesh ReadWithOpenMesh(std::istream& in, const std::string& format, const
 
 TriangleMesh ReadMesh(std::istream& in, const std::string& format, const std::string& source) {
   QuietOpenMesh();
-  if (format == "obj" || format == "stl") return ReadWithOpenMesh(in, format, source);
-  // Read whole (these are the CLI's formats; the server takes OBJ): PLY to check its header before OpenMesh,
-  // OFF for our own reader.
+  if (format == "stl") return ReadWithOpenMesh(in, format, source);
+  // Read whole: OBJ (the server's format) and PLY to check them before OpenMesh, OFF for our own reader.
   std::string text((std::istreambuf_iterator<char>(in)), std::istreambuf_iterator<char>());
   if (format == "off") return Triangulate(ReadOff(text, source), source);
-  CheckPlyHeader(text, source);
+  text = format == "ply" ? CheckPly(std::move(text), source) : CheckObj(std::move(text), source);
   std::istringstream checked(std::move(text));
   return ReadWithOpenMesh(checked, format, source);
 }

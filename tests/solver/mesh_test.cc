@@ -9,9 +9,15 @@
 #include <gmock/gmock.h>
 #include <gtest/gtest.h>
 
+#include <fcntl.h>
+#include <sys/stat.h>
+#include <unistd.h>
+
 #include <array>
+#include <chrono>
 #include <cstdint>
 #include <fstream>
+#include <future>
 #include <sstream>
 #include <string>
 #include <vector>
@@ -104,12 +110,34 @@ TEST(LoadMesh, RefusesPlyAndOffHeadersItsReaderWouldTrust) {
       {"e.ply", "plyx\nend_header\n", "the first line is not 'ply'"},
       // A fuzzer input that hung the reader: a count that is not a number.
       {"i.ply", "ply\nformat ascii 1.0\nelement vertex t face 4\nend_header\n0 0 0\n", "not 'element NAME COUNT'"},
+      // A fuzzer input that hung the reader: a version that is not a number.
+      {"j.ply", "ply\nformat ascii \xbf\xa6VVndices\nelement vertex 1\nproperty float x\nend_header\n0\n",
+       "line 2: not 'format ascii|binary_little_endian|binary_big_endian VERSION'"},
+      // The header ends at an end_header line, not at those letters in a comment (the reader would read on to the
+      // end of the file and loop there).
+      {"k.ply", "ply\nformat ascii 1.0\ncomment end_header\nelement vertex 1\nproperty float x\n0\n",
+       "no end_header line"},
+      {"l.ply", "ply\ncomment made by hand\nformat ascii 1.0\nend_header\n", "line 2: the format line must come first"},
       {"f.off", binary_off, "binary OFF is not supported"},
       {"g.off", "OFF\n999999999 1 0\n0 0 0\n", "more than the file's"},
       {"h.off", "XOFFY\n", "does not start with OFF"},
   };
   TempDir dir;
   for (const Case& c : cases) ExpectRefused(dir, c.file, c.text, {c.message});
+}
+
+TEST(LoadMesh, PlyObjInfoLinesAreReadAsComments) {
+  // OpenMesh reads an obj_info line's words as header keywords: here its end_header would end the header early.
+  TempDir dir;
+  const TriangleMesh reference = LoadMesh(dir.Write("t.obj", kTetrahedronObj));
+  const TriangleMesh ply = LoadMesh(dir.Write(
+      "t.ply",
+      "ply\nformat ascii 1.0\nobj_info exported before end_header\nelement vertex 4\nproperty float x\n"
+      "property float y\nproperty float z\nelement face 4\nproperty list uchar int vertex_indices\n"
+      "  obj_info element face 99999999999\nend_header\n"
+      "0 0 0\n1 0 0\n0 1 0\n0 0 1\n3 0 2 1\n3 0 1 3\n3 1 2 3\n3 0 3 2\n"));
+  EXPECT_EQ(ply.vertices, reference.vertices);
+  EXPECT_EQ(ply.faces, reference.faces);
 }
 
 // OpenMesh's OFF reader, as the loader used it before OFF had a reader of its own: the raw vertices and
@@ -302,6 +330,48 @@ TEST(LoadMesh, OffRefusalsNameTheFileTheLineAndTheFault) {
   };
   TempDir dir;
   for (const Case& c : cases) ExpectRefused(dir, c.file, c.text, c.message);
+}
+
+TEST(LoadMesh, ObjFaceCornersMustNameAVertex) {
+  // Fuzzer finding: a corner without a vertex index failed an assertion in OpenMesh's OBJ reader (an abort: the
+  // server parses OBJ mesh colliders from requests).
+  const std::string v = "v 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 0 1\n";
+  TempDir dir;
+  ExpectRefused(dir, "finding.obj", v + "vt 0 0\nf /2 3 1\n", {"line 6:", "face corner '/2' is not V, V/VT"});
+  ExpectRefused(dir, "word.obj", v + "f 1 2 3\nf x/1 2 3\n", {"line 6:", "corner 'x/1'"});
+  ExpectRefused(dir, "four.obj", v + "f 1 2 3/1/1/1\n", {"line 5:", "corner '3/1/1/1'"});
+  ExpectRefused(dir, "huge.obj", v + "f 1 2 99999999999\n", {"line 5:", "corner '99999999999'"});
+  ExpectRefused(dir, "slash.obj", v + "f 1 2 /\n", {"line 5:", "corner '/'"});
+  // Every corner form OBJ has still reads as before.
+  const TriangleMesh plain = LoadMesh(dir.Write("plain.obj", v + "f 1 3 2\nf 1 2 4\n"));
+  for (const std::string faces : {"f 1/1 3/1 2/1\nf 1/1 2/1 4/1\n", "f 1//1 3//1 2//1\nf 1//1 2//1 4//1\n",
+                                  "f 1/1/1 3/1/1 2/1/1\nf +1 +2 +4\n", "f -4 -2 -3\nf 1/ 2/ 4//\n"}) {
+    const TriangleMesh mesh = LoadMesh(dir.Write("forms.obj", v + "vt 0 0\nvn 0 0 1\n" + faces));
+    EXPECT_EQ(mesh.faces, plain.faces) << faces;
+    EXPECT_EQ(mesh.vertices, plain.vertices) << faces;
+  }
+}
+
+TEST(LoadMesh, ObjMaterialLibrariesAreNeverOpened) {
+  // OpenMesh's OBJ reader opens the file an `mtllib` line names, on the machine that parses it (`mtllib
+  // /dev/zero` allocated until the fuzzer stopped it). A FIFO tells: opening it blocks until a writer comes.
+  TempDir dir;
+  const std::string fifo = dir.File("materials.mtl");
+  ASSERT_EQ(mkfifo(fifo.c_str(), 0600), 0);
+  const std::string obj = std::string("mtllib ") + fifo + "\nusemtl skin\n" + kTetrahedronObj;
+  auto load = std::async(std::launch::async, [&] { return LoadMeshFromText(obj, "obj", "collider.obj"); });
+  if (load.wait_for(std::chrono::seconds(5)) != std::future_status::ready) {
+    ADD_FAILURE() << "the loader opened the material library " << fifo;
+    const int writer = open(fifo.c_str(), O_WRONLY | O_NONBLOCK);  // lets it read an empty file and go on
+    if (writer >= 0) close(writer);
+  }
+  const TriangleMesh mesh = load.get();
+  const TriangleMesh reference = LoadMeshFromText(kTetrahedronObj, "obj", "tetrahedron");
+  EXPECT_EQ(mesh.faces, reference.faces);
+  EXPECT_EQ(mesh.vertices, reference.vertices);
+  // Lines keep their numbers with the library line blanked.
+  EXPECT_THAT(CatchError([&] { LoadMeshFromText("mtllib " + fifo + "\nv 0 0 0\nf /1 1 1\n", "obj", "c.obj"); }).what(),
+              HasSubstr("c.obj: line 3: face corner '/1'"));
 }
 
 TEST(LoadMesh, SplitsPolygonsIntoTriangles) {

@@ -19,9 +19,9 @@ struct TriangleMesh {
 };
 
 // Load OBJ, PLY, OFF or STL (by extension), keeping the file's vertex order exactly; polygons are
-// fan-triangulated. OBJ, PLY and STL go through OpenMesh (PLY headers are checked first), ASCII OFF through a
-// strict reader of our own (binary OFF is refused). Throws Error naming the file and the offending element (and
-// for OFF, the line).
+// fan-triangulated. OBJ, PLY and STL go through OpenMesh (OBJ face corners and PLY headers are checked first, OBJ
+// material libraries never opened), ASCII OFF through a strict reader of our own (binary OFF is refused). Throws
+// Error naming the file and the offending element (and the line, for OFF and OBJ face corners).
 TriangleMesh LoadMesh(const std::string& path);
 
 // Parse a mesh from memory; format is "obj", "ply", "off" or "stl"; source names it in messages.
