@@ -91,6 +91,10 @@ int main(int argc, char** argv) {
     if (!tokens_file.empty()) auth.AddFile(tokens_file);
     const std::shared_ptr<grpc::ServerCredentials> credentials = MakeServerCredentials(tls);
     CharacterStore store({cache_dir, memory_mb << 20});
+    // Before serving: what writers killed mid-write (kill -9, OOM) left behind. Live writers' files are kept.
+    const CharacterStore::Cleanup cleanup = store.RemoveStaleTemporaries();
+    spdlog::info("cache {}: removed {} stale temporary files{}", cache_dir, cleanup.removed,
+                 cleanup.in_use ? fmt::format(" ({} in use by another writer, kept)", cleanup.in_use) : "");
     SolverPool pool(workers, queue);
     Metrics metrics;
     ServiceContext context{store, pool, limits, replica, metrics, auth};

@@ -3,6 +3,7 @@
 #pragma once
 
 #include <arpa/inet.h>
+#include <fcntl.h>
 #include <gtest/gtest.h>
 #include <netinet/in.h>
 #include <signal.h>
@@ -19,16 +20,21 @@
 
 namespace springblend::testing {
 
-// A server process; stopped with SIGTERM (the graceful path) when the object goes.
+// A server process; stopped with SIGTERM (the graceful path) when the object goes. Its log (stderr) goes to
+// log_file when one is given.
 class ServerProcess {
  public:
-  ServerProcess(const std::string& cache_dir, std::vector<std::string> extra = {}) {
+  ServerProcess(const std::string& cache_dir, std::vector<std::string> extra = {}, const std::string& log_file = "") {
     int out[2];
     EXPECT_EQ(pipe(out), 0);
     pid_ = fork();
     if (pid_ == 0) {
       dup2(out[1], STDOUT_FILENO);
       close(out[0]);
+      if (!log_file.empty()) {
+        const int log = open(log_file.c_str(), O_WRONLY | O_CREAT | O_TRUNC | O_CLOEXEC, 0644);
+        if (log >= 0) dup2(log, STDERR_FILENO);
+      }
       std::vector<std::string> args = {SPRINGBLEND_SERVER, "--listen", "127.0.0.1:0", "--cache-dir", cache_dir};
       args.insert(args.end(), extra.begin(), extra.end());
       std::vector<char*> argv;
