@@ -44,7 +44,8 @@ class ServerProcess {
       _exit(127);
     }
     close(out[1]);
-    // Lines until "springblend-server listening on 127.0.0.1:PORT" (after "... metrics on http://...").
+    // Lines until "springblend-server listening on 127.0.0.1:PORT" (after "... metrics on http://..." and
+    // "... health on 127.0.0.1:PORT").
     for (int lines = 0; lines < 4 && address_.empty(); ++lines) {
       std::string line;
       char c;
@@ -53,6 +54,8 @@ class ServerProcess {
       if (colon == std::string::npos) break;
       if (line.find("metrics on") != std::string::npos) {
         metrics_port_ = std::stoi(line.substr(colon + 1));
+      } else if (line.find("health on") != std::string::npos) {
+        health_address_ = "127.0.0.1:" + line.substr(colon + 1);
       } else if (line.find("listening on") != std::string::npos) {
         address_ = "127.0.0.1:" + line.substr(colon + 1);
       }
@@ -60,6 +63,8 @@ class ServerProcess {
     close(out[0]);
   }
   int metrics_port() const { return metrics_port_; }
+  // The plaintext health-only address (--health-address), empty without one.
+  const std::string& health_address() const { return health_address_; }
   ~ServerProcess() { Stop(); }
   // kill -9: no draining, no clean-up; what a crash or an OOM kill leaves.
   void Kill() {
@@ -89,6 +94,7 @@ class ServerProcess {
  private:
   pid_t pid_ = -1;
   std::string address_;
+  std::string health_address_;
   int metrics_port_ = 0;
 };
 
