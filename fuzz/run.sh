@@ -20,12 +20,14 @@ seeds="$out/seeds"
 rm -rf "$seeds"
 mkdir -p "$seeds"/{mesh_loader_fuzzer,upload_assembler_fuzzer,solve_request_fuzzer,frames_file_fuzzer,cache_file_fuzzer} \
   "$out/findings"
-# Mesh loader: a format byte (0 obj, 1 off, 2 stl, 3 ply) then the file: the first lines of a test mesh, and a
-# tetrahedron in each format. (Small seeds: OpenMesh is slow on large inputs under ASan.)
+# Mesh loader: a format byte (0 obj, 1 off, 2 stl; 3 ply with SPRINGBLEND_FUZZ_PLY=1, see mesh_loader_fuzzer.cc)
+# then the file: the first lines of a test mesh, and a tetrahedron in each format. (Small seeds: OpenMesh is slow
+# on large inputs under ASan.)
 { printf '\x00'; head -c 3000 tests/data/cylinder/cylinder.obj | grep -E '^(v|f) '; } > "$seeds/mesh_loader_fuzzer/cylinder-part.obj"
 tet_v='0 0 0\n1 0 0\n0 1 0\n0 0 1\n'
 { printf '\x00'; printf 'v 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 0 1\nf 1 3 2\nf 1 2 4\nf 2 3 4\nf 3 1 4\n'; } > "$seeds/mesh_loader_fuzzer/tet.obj"
 { printf '\x01'; printf "OFF\n4 4 0\n$tet_v"'3 0 2 1\n3 0 1 3\n3 1 2 3\n3 2 0 3\n'; } > "$seeds/mesh_loader_fuzzer/tet.off"
+{ printf '\x01'; printf '# quads, colours\nCOFF 5 2 0\n0 0 0 1 0 0\n1 0 0 0 1 0 1\n1 1 0 0 0 1\n0 1 0 1 1 1\n0.5 2 1e-3 0 0 0\n4 0 1 2 3 255 0 0\n3 3 2 4 # tip\n'; } > "$seeds/mesh_loader_fuzzer/quads.off"
 { printf '\x03'; printf "ply\nformat ascii 1.0\nelement vertex 4\nproperty float x\nproperty float y\nproperty float z\nelement face 4\nproperty list uchar int vertex_indices\nend_header\n$tet_v"'3 0 2 1\n3 0 1 3\n3 1 2 3\n3 2 0 3\n'; } > "$seeds/mesh_loader_fuzzer/tet.ply"
 { printf '\x02'; printf 'solid t\nfacet normal 0 0 -1\nouter loop\nvertex 0 0 0\nvertex 0 1 0\nvertex 1 0 0\nendloop\nendfacet\nendsolid t\n'; } > "$seeds/mesh_loader_fuzzer/tri.stl"
 # Frames files: the shapes the README documents.
@@ -52,5 +54,6 @@ for t in "${targets[@]}"; do
   execs=$(grep -E "stat::number_of_executed_units" "$log" | awk '{print $2}')
   cov=$(grep -E "^#[0-9]+.*(DONE|INITED)" "$log" | tail -1 | sed -E 's/.*cov: ([0-9]+).*/\1/')
   echo "fuzz: $t: ${execs:-?} executions, coverage ${cov:-?} edges, corpus $(ls "$corpus" | wc -l) inputs"
+  grep -E "executions by format" "$log" | tail -1 | sed "s/^/fuzz: /" || true
 done
 exit $status

@@ -2,15 +2,18 @@
 
 #include <fcntl.h>
 #include <openssl/evp.h>
+#include <sys/file.h>
+#include <sys/stat.h>
 #include <unistd.h>
 
+#include <cerrno>
 #include <cstring>
 #include <filesystem>
 #include <fmt/format.h>
 #include <fstream>
+#include <random>
 #include <sstream>
 #include <unordered_set>
-#include <thread>
 
 #include "springblend/error.h"
 
@@ -104,6 +107,29 @@ std::string SerializeWithName(const CharacterData& d, const std::string& name) {
   return w.Take();
 }
 
+// A temporary of WriteFile: ID.sbchar.tmp.PID.SUFFIX, ID 64 lowercase hex digits, PID decimal, SUFFIX hex (or
+// decimal, as earlier versions wrote it).
+bool IsTemporaryName(const std::string& name) {
+  constexpr std::string_view kMiddle = ".sbchar.tmp.";
+  if (name.size() < 64 + kMiddle.size() + 3 || !CharacterStore::ValidId(name.substr(0, 64)) ||
+      name.compare(64, kMiddle.size(), kMiddle) != 0) {
+    return false;
+  }
+  const std::string rest = name.substr(64 + kMiddle.size());
+  const size_t dot = rest.find('.');
+  if (dot == std::string::npos || dot == 0 || dot + 1 == rest.size()) return false;
+  const auto all = [](std::string_view s, std::string_view digits) {
+    return s.find_first_not_of(digits) == std::string_view::npos;
+  };
+  return all(std::string_view(rest).substr(0, dot), "0123456789") &&
+         all(std::string_view(rest).substr(dot + 1), "0123456789abcdef");
+}
+
+std::uint64_t RandomSuffix() {
+  thread_local std::mt19937_64 generator{std::random_device{}()};
+  return generator();
+}
+
 std::int64_t EstimateBytes(const Rig& rig) {
   const std::int64_t n = rig.num_vertices(), m = rig.num_springs(), shapes = rig.num_targets() + 1;
   return 24 * n * shapes * 2 + m * (9 + 8 * shapes) + rig.summary().hessian_nonzeros * 16 +
@@ -170,14 +196,33 @@ std::string CharacterStore::PathOf(const std::string& id) const {
 void CharacterStore::WriteFile(const std::string& id, const std::string& payload) const {
   if (options_.directory.empty()) return;
   // Atomic: a uniquely named temporary file, flushed to disk, then renamed over the final name. Readers see
-  // the whole file or none; a crash leaves at most a temporary file, which is never read.
+  // the whole file or none; a crash leaves at most a temporary file, which is never read, and which the next
+  // start removes (RemoveStaleTemporaries). The writer holds a lock on its temporary until the rename, so a
+  // replica starting on the same directory can tell a live writer's file from a dead one's.
   const std::string path = PathOf(id);
-  const std::string temporary = fmt::format("{}.tmp.{}.{}", path, ::getpid(), std::hash<std::thread::id>{}(std::this_thread::get_id()));
+  std::string temporary;
+  int fd = -1;
+  for (int attempt = 0; attempt < 3 && fd < 0; ++attempt) {
+    temporary = fmt::format("{}.tmp.{}.{:016x}", path, ::getpid(), RandomSuffix());
+    fd = ::open(temporary.c_str(), O_WRONLY | O_CREAT | O_EXCL | O_CLOEXEC, 0644);
+    if (fd < 0) {
+      if (errno == EEXIST) continue;
+      return;  // the cache directory is an optimisation; serving goes on from memory
+    }
+    // A starting replica may have opened the new file in the moment before the lock: it then holds the lock
+    // or has already unlinked the file. Either way, start over under another name. (A file system without
+    // locks fails with another error: write unlocked; the clean-up then leaves the file alone.)
+    struct stat status {};
+    if ((::flock(fd, LOCK_EX | LOCK_NB) != 0 && errno == EWOULDBLOCK) ||
+        (::fstat(fd, &status) == 0 && status.st_nlink == 0)) {
+      ::close(fd);
+      fd = -1;
+    }
+  }
+  if (fd < 0) return;
   std::string bytes(kFileMagic, sizeof(kFileMagic));
   bytes += Sha256(payload);
   bytes += payload;
-  const int fd = ::open(temporary.c_str(), O_WRONLY | O_CREAT | O_TRUNC | O_CLOEXEC, 0644);
-  if (fd < 0) return;  // the cache directory is an optimisation; serving goes on from memory
   size_t written = 0;
   while (written < bytes.size()) {
     const ssize_t n = ::write(fd, bytes.data() + written, bytes.size() - written);
@@ -185,8 +230,41 @@ void CharacterStore::WriteFile(const std::string& id, const std::string& payload
     written += static_cast<size_t>(n);
   }
   const bool ok = written == bytes.size() && ::fsync(fd) == 0;
-  ::close(fd);
   if (!ok || std::rename(temporary.c_str(), path.c_str()) != 0) std::remove(temporary.c_str());
+  ::close(fd);  // releases the lock, after the rename
+}
+
+CharacterStore::Cleanup CharacterStore::RemoveStaleTemporaries() {
+  Cleanup cleanup;
+  if (options_.directory.empty()) return cleanup;
+  namespace fs = std::filesystem;
+  std::error_code ec;
+  for (fs::directory_iterator it(options_.directory, ec), end; !ec && it != end; it.increment(ec)) {
+    const fs::path file = it->path();
+    if (!IsTemporaryName(file.filename().string())) continue;
+    // O_NOFOLLOW: a symbolic link with our name is not ours (and what it points to never is). Read-write: NFS
+    // grants an exclusive lock only on a file open for writing.
+    const int fd = ::open(file.c_str(), O_RDWR | O_NOFOLLOW | O_NONBLOCK | O_CLOEXEC);
+    if (fd < 0) continue;
+    struct stat opened {};
+    if (::fstat(fd, &opened) != 0 || !S_ISREG(opened.st_mode)) {
+      ::close(fd);
+      continue;
+    }
+    if (::flock(fd, LOCK_EX | LOCK_NB) != 0) {
+      if (errno == EWOULDBLOCK) ++cleanup.in_use;  // other errors: no locks here, so no telling; keep it
+      ::close(fd);
+      continue;
+    }
+    // Unlink only if the name still is the file we locked (its writer may have renamed it into place since).
+    struct stat named {};
+    if (::lstat(file.c_str(), &named) == 0 && named.st_dev == opened.st_dev && named.st_ino == opened.st_ino &&
+        ::unlink(file.c_str()) == 0) {
+      ++cleanup.removed;
+    }
+    ::close(fd);
+  }
+  return cleanup;
 }
 
 std::optional<std::string> CharacterStore::ReadFile(const std::string& id) {

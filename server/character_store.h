@@ -65,6 +65,16 @@ class CharacterStore {
   bool Delete(const std::string& id);
   StoreStats stats() const;
 
+  // Removes the temporary files writers killed mid-write (kill -9, OOM, power loss) left in the cache
+  // directory: only regular files named like WriteFile's temporaries (ID.sbchar.tmp.PID.SUFFIX) that no live
+  // writer holds. A writer, here or in another replica sharing the directory, holds a lock on its temporary until
+  // the rename, so its file is kept (`in_use`). Nothing else in the directory is touched. Run at start-up.
+  struct Cleanup {
+    int removed = 0;  // stale temporaries deleted
+    int in_use = 0;   // temporaries a live writer holds, kept
+  };
+  Cleanup RemoveStaleTemporaries();
+
   static bool ValidId(const std::string& id);
 
  private:

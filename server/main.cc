@@ -17,6 +17,7 @@
 #include <thread>
 
 #include "character_store.h"
+#include "health.h"
 #include "metrics.h"
 #include "security.h"
 #include "service.h"
@@ -38,6 +39,7 @@ int main(int argc, char** argv) {
   std::string replica;
   int drain_seconds = 30;
   std::string metrics_listen;
+  std::string health_listen;
   TlsOptions tls;
   std::vector<std::string> tokens;
   std::string tokens_file;
@@ -53,6 +55,9 @@ int main(int argc, char** argv) {
   app.add_option("--replica-name", replica, "name reported in each frame's served_by (default: host name)");
   app.add_option("--drain-seconds", drain_seconds, "on SIGTERM, how long in-flight streams may finish");
   app.add_option("--metrics", metrics_listen, "serve Prometheus metrics at http://ADDRESS:PORT/metrics (off when empty)");
+  app.add_option("--health-address", health_listen,
+                 "also serve only the standard health service, over plaintext, at HOST:PORT: for probes that "
+                 "cannot speak TLS (off when empty)");
   app.add_option("--tls-cert", tls.cert_file, "PEM certificate chain: serve TLS instead of plaintext");
   app.add_option("--tls-key", tls.key_file, "PEM private key of --tls-cert");
   app.add_option("--tls-client-ca", tls.client_ca_file,
@@ -91,6 +96,10 @@ int main(int argc, char** argv) {
     if (!tokens_file.empty()) auth.AddFile(tokens_file);
     const std::shared_ptr<grpc::ServerCredentials> credentials = MakeServerCredentials(tls);
     CharacterStore store({cache_dir, memory_mb << 20});
+    // Before serving: what writers killed mid-write (kill -9, OOM) left behind. Live writers' files are kept.
+    const CharacterStore::Cleanup cleanup = store.RemoveStaleTemporaries();
+    spdlog::info("cache {}: removed {} stale temporary files{}", cache_dir, cleanup.removed,
+                 cleanup.in_use ? fmt::format(" ({} in use by another writer, kept)", cleanup.in_use) : "");
     SolverPool pool(workers, queue);
     Metrics metrics;
     ServiceContext context{store, pool, limits, replica, metrics, auth};
@@ -134,6 +143,14 @@ int main(int argc, char** argv) {
       return 2;
     }
     const std::string host = listen.substr(0, listen.rfind(':'));
+    // Started once the main server is up, so it says SERVING only when the main port does.
+    std::unique_ptr<HealthEndpoint> health;
+    if (!health_listen.empty()) {
+      health = std::make_unique<HealthEndpoint>(health_listen);
+      const std::string health_host = health_listen.substr(0, health_listen.rfind(':'));
+      std::cout << "springblend-server health on " << health_host << ":" << health->port() << std::endl;
+      spdlog::info("health (grpc.health.v1.Health only, plaintext) on {}:{}", health_host, health->port());
+    }
     std::cout << "springblend-server listening on " << host << ":" << port << std::endl;
     spdlog::info("listening on {}:{} with {} solver threads, cache {}", host, port, workers, cache_dir);
     spdlog::info("transport: {}; {}", tls.cert_file.empty()         ? "plaintext"
@@ -148,6 +165,9 @@ int main(int argc, char** argv) {
       int signal_number = 0;
       sigwait(&signals, &signal_number);
       spdlog::info("signal {}: draining in-flight calls for up to {} s", signal_number, drain_seconds);
+      // Probes see NOT_SERVING while in-flight calls drain, so balancers stop sending new ones.
+      if (auto* main_health = server->GetHealthCheckService()) main_health->SetServingStatus(false);
+      if (health) health->SetServing(false);
       server->Shutdown(std::chrono::system_clock::now() + std::chrono::seconds(drain_seconds));
     });
     server->Wait();

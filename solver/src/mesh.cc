@@ -8,17 +8,19 @@
 #include <fmt/os.h>
 
 #include <algorithm>
+#include <array>
 #include <cctype>
-#include <cstdint>
-#include <vector>
-#include <iterator>
-#include <cstring>
 #include <cmath>
 #include <filesystem>
 #include <fstream>
+#include <iterator>
+#include <limits>
 #include <mutex>
 #include <sstream>
+#include <string_view>
+#include <vector>
 
+#include "off_reader.h"
 #include "springblend/error.h"
 
 namespace springblend {
@@ -37,32 +39,33 @@ class RawImporter final : public OpenMesh::IO::ImporterT<PolyMesh> {
   explicit RawImporter(PolyMesh& mesh) : ImporterT<PolyMesh>(mesh) {}
 
   OpenMesh::VertexHandle add_vertex(const OpenMesh::Vec3f& p) override {
-    points.push_back({p[0], p[1], p[2]});
+    soup.points.push_back({p[0], p[1], p[2]});
     return ImporterT<PolyMesh>::add_vertex(p);
   }
   OpenMesh::VertexHandle add_vertex(const OpenMesh::Vec3d& p) override {
-    points.push_back({p[0], p[1], p[2]});
+    soup.points.push_back({p[0], p[1], p[2]});
     return ImporterT<PolyMesh>::add_vertex(p);
   }
   // The PLY reader adds a vertex first and sets its position afterwards.
   OpenMesh::VertexHandle add_vertex() override {
-    points.push_back({0.0, 0.0, 0.0});
+    soup.points.push_back({0.0, 0.0, 0.0});
     return ImporterT<PolyMesh>::add_vertex();
   }
   void set_point(OpenMesh::VertexHandle vh, const OpenMesh::Vec3f& p) override {
-    if (vh.idx() >= 0 && static_cast<size_t>(vh.idx()) < points.size()) points[vh.idx()] = {p[0], p[1], p[2]};
+    if (vh.idx() >= 0 && static_cast<size_t>(vh.idx()) < soup.points.size()) {
+      soup.points[vh.idx()] = {p[0], p[1], p[2]};
+    }
     ImporterT<PolyMesh>::set_point(vh, p);
   }
   OpenMesh::FaceHandle add_face(const VHandles& indices) override {
     std::vector<int> face;
     face.reserve(indices.size());
     for (const auto& vh : indices) face.push_back(vh.idx());
-    polygons.push_back(std::move(face));
+    soup.polygons.push_back(std::move(face));
     return ImporterT<PolyMesh>::add_face(indices);
   }
 
-  std::vector<std::array<double, 3>> points;
-  std::vector<std::vector<int>> polygons;
+  PolygonSoup soup;
 };
 
 void QuietOpenMesh() {
@@ -81,21 +84,39 @@ std::string Lowercase(std::string s) {
   return s;
 }
 
-// OpenMesh 9.0's PLY and OFF readers trust their headers: a PLY header without end_header loops forever,
-// garbled PLY headers crash it, and a binary OFF header's counts are allocated as given. Headers are
-// checked here first, strictly, so bad files get an error naming the line and never reach those readers.
-void CheckPlyHeader(const std::string& text, const std::string& source) {
+// OpenMesh 9.0's PLY reader trusts its header: it reads it word by word until the word end_header, and a word it
+// cannot parse as the number it expects (a version, a count), or the end of the file, makes it loop for ever;
+// garbled headers crash it. The header is checked here first, strictly and line by line, so a bad file gets an
+// error naming the line and never reaches that reader; `obj_info` lines, whose words OpenMesh would read as
+// keywords, become comments. Returns the text to hand to OpenMesh. (Its OFF reader trusted the counts as well;
+// OFF has a reader of its own, off_reader.cc.)
+std::string CheckPly(std::string text, const std::string& source) {
   constexpr size_t kMaxHeader = 1 << 16;
   const auto fail = [&](const std::string& what) {
     throw Error(ErrorCode::kInvalidInput, fmt::format("{}: PLY header: {}", source, what));
   };
-  const size_t end = text.find("end_header");
-  if (end == std::string::npos || end > kMaxHeader) fail("no end_header line in the first 64 KiB");
-  const size_t body = text.find('\n', end);
-  const size_t body_bytes = body == std::string::npos ? 0 : text.size() - body - 1;
+  const auto trimmed = [](std::string_view line) {
+    const size_t first = line.find_first_not_of(" \t\r\v\f");
+    if (first == std::string_view::npos) return std::string_view();
+    return line.substr(first, line.find_last_not_of(" \t\r\v\f") - first + 1);
+  };
+  // The header ends at the first line that is end_header alone (not at those letters in a comment).
+  size_t end = std::string::npos, body = text.size();
+  for (size_t at = 0; at < text.size() && at <= kMaxHeader;) {
+    const size_t eol = std::min(text.find('\n', at), text.size());
+    if (trimmed(std::string_view(text).substr(at, eol - at)) == "end_header") {
+      end = at;
+      body = std::min(eol + 1, text.size());
+      break;
+    }
+    at = eol + 1;
+  }
+  if (end == std::string::npos) fail("no end_header line in the first 64 KiB");
+  const size_t body_bytes = text.size() - body;
   std::istringstream header(text.substr(0, end));
   std::string line;
   int number = 0;
+  size_t line_start = 0;
   bool format = false;
   bool element = false;
   static const std::vector<std::string> kTypes = {"char",  "uchar", "short",  "ushort",  "int",    "uint",
@@ -104,12 +125,11 @@ void CheckPlyHeader(const std::string& text, const std::string& source) {
   const auto known_type = [&](const std::string& t) {
     return std::find(kTypes.begin(), kTypes.end(), t) != kTypes.end();
   };
-  const auto is_count = [](const std::string& t) {
-    return !t.empty() && t.size() <= 12 && std::all_of(t.begin(), t.end(), [](unsigned char c) { return std::isdigit(c); });
+  const auto digits = [](std::string_view t) {
+    return !t.empty() && std::all_of(t.begin(), t.end(), [](unsigned char c) { return std::isdigit(c); });
   };
-  while (std::getline(header, line)) {
+  for (; std::getline(header, line); line_start += line.size() + 1) {
     ++number;
-    if (!line.empty() && line.back() == '\r') line.pop_back();
     std::istringstream split(line);
     std::vector<std::string> w;
     for (std::string word; split >> word;) w.push_back(word);
@@ -117,14 +137,24 @@ void CheckPlyHeader(const std::string& text, const std::string& source) {
       if (w.size() != 1 || w[0] != "ply") fail("the first line is not 'ply'");
       continue;
     }
-    if (w.empty() || w[0] == "comment" || w[0] == "obj_info") continue;
-    if (w[0] == "format") {
-      if (w.size() != 3 || (w[1] != "ascii" && w[1] != "binary_little_endian" && w[1] != "binary_big_endian")) {
+    if (w.empty()) continue;
+    if (!format && w[0] != "format") fail(fmt::format("line {}: the format line must come first", number));
+    if (w[0] == "comment") continue;
+    if (w[0] == "obj_info") {
+      text.replace(line_start + line.find("obj_info"), 8, "comment ");
+    } else if (w[0] == "format") {
+      const size_t point = w.size() == 3 ? w[2].find('.') : 0;
+      if (format || w.size() != 3 ||
+          (w[1] != "ascii" && w[1] != "binary_little_endian" && w[1] != "binary_big_endian") ||
+          !digits(std::string_view(w[2]).substr(0, point)) ||
+          (point != std::string::npos && !digits(std::string_view(w[2]).substr(point + 1)))) {
         fail(fmt::format("line {}: not 'format ascii|binary_little_endian|binary_big_endian VERSION'", number));
       }
       format = true;
     } else if (w[0] == "element") {
-      if (w.size() != 3 || !is_count(w[2])) fail(fmt::format("line {}: not 'element NAME COUNT'", number));
+      if (w.size() != 3 || !digits(w[2]) || w[2].size() > 10 || std::stoull(w[2]) > 0xFFFFFFFFull) {
+        fail(fmt::format("line {}: not 'element NAME COUNT'", number));
+      }
       const unsigned long long count = std::stoull(w[2]);
       if (count > body_bytes) {
         fail(fmt::format("line {}: element '{}' has a count ({}) the file's {} data bytes cannot hold", number,
@@ -148,103 +178,89 @@ void CheckPlyHeader(const std::string& text, const std::string& source) {
   }
   if (number == 0) fail("empty");
   if (!format) fail("no format line");
+  return text;
 }
 
-void CheckOffHeader(const std::string& text, const std::string& source) {
-  const auto fail = [&](const std::string& what) {
-    throw Error(ErrorCode::kInvalidInput, fmt::format("{}: OFF header: {}", source, what));
+// OpenMesh 9.0's OBJ reader, on two kinds of lines, does what no client's file may make the server do:
+// - `mtllib PATH` opens PATH on this machine (relative to the working directory when reading from memory) and
+//   reads it whole: `mtllib /dev/zero` allocates until the process dies, a FIFO blocks it for ever, and the
+//   materials it loads live in the reader's one shared instance, which concurrent loads would race on. A rig
+//   never uses materials, so those lines are blanked before OpenMesh sees them.
+// - a face corner without a vertex index (`f /2 3 1`) fails an assertion (abort) or, built without assertions,
+//   reads before an empty vector; a corner that is not a number leaves the index uninitialised. Corners are
+//   checked first: V, V/VT, V//VN or V/VT/VN, each a decimal integer that fits an int.
+// Lines are taken as OpenMesh takes them: split at '\n', trimmed, '#' starts a comment, the first word is the
+// keyword. Returns the text to hand to OpenMesh.
+std::string CheckObj(std::string text, const std::string& source) {
+  const auto is_space = [](char c) { return std::isspace(static_cast<unsigned char>(c)) != 0; };
+  const auto is_index = [](std::string_view v, bool required) {
+    if (v.empty()) return !required;
+    if (v[0] == '+' || v[0] == '-') v.remove_prefix(1);
+    if (v.empty() || v.size() > 10 || !std::all_of(v.begin(), v.end(), [](char c) { return c >= '0' && c <= '9'; })) {
+      return false;
+    }
+    return std::stoll(std::string(v)) <= std::numeric_limits<int>::max();
   };
-  std::istringstream in(text);
-  std::string keyword;
-  in >> keyword;
-  const size_t off = keyword.rfind("OFF");
-  if (off == std::string::npos || off + 3 != keyword.size() || off > 5) fail("the file does not start with OFF");
-  std::string next;
-  const std::streampos after_keyword = in.tellg();
-  in >> next;
-  if (next == "BINARY") {
-    // Counts follow as binary 32-bit integers after the line break.
-    const size_t start = text.find('\n', static_cast<size_t>(in.tellg()));
-    if (start == std::string::npos || text.size() < start + 1 + 12) fail("binary counts are missing");
-    std::int32_t counts[3];
-    std::memcpy(counts, text.data() + start + 1, sizeof(counts));
-    const size_t rest = text.size() - start - 13;
-    if (counts[0] < 0 || counts[1] < 0 || static_cast<unsigned long long>(counts[0]) * 12 > rest ||
-        static_cast<unsigned long long>(counts[1]) * 4 > rest) {
-      fail(fmt::format("{} vertices and {} faces do not fit in the file's {} data bytes", counts[0], counts[1],
-                       rest));
+  int number = 0;
+  for (size_t at = 0; at < text.size(); ++number) {
+    const size_t end = std::min(text.find('\n', at), text.size());
+    const std::string_view line(text.data() + at, end - at);
+    size_t word = 0;
+    while (word < line.size() && is_space(line[word])) ++word;
+    size_t word_end = word;
+    while (word_end < line.size() && !is_space(line[word_end])) ++word_end;
+    const std::string_view keyword = line.substr(word, word_end - word);
+    if (keyword == "mtllib") {
+      std::fill(text.begin() + static_cast<std::ptrdiff_t>(at), text.begin() + static_cast<std::ptrdiff_t>(end), ' ');
+    } else if (keyword == "f") {
+      for (size_t i = word_end; i < line.size();) {
+        while (i < line.size() && is_space(line[i])) ++i;
+        const size_t start = i;
+        while (i < line.size() && !is_space(line[i])) ++i;
+        if (i == start) break;
+        const std::string_view corner = line.substr(start, i - start);
+        const size_t first = corner.find('/');
+        const size_t second = first == std::string_view::npos ? first : corner.find('/', first + 1);
+        const bool ok =
+            is_index(corner.substr(0, first), true) &&
+            (first == std::string_view::npos ||
+             (is_index(corner.substr(first + 1, second == std::string_view::npos ? second : second - first - 1),
+                       false) &&
+              (second == std::string_view::npos || is_index(corner.substr(second + 1), false))));
+        if (!ok) {
+          throw Error(ErrorCode::kInvalidInput,
+                      fmt::format("{}: line {}: face corner '{}' is not V, V/VT, V//VN or V/VT/VN (integer "
+                                  "indices, V required)",
+                                  source, number + 1, corner.substr(0, 32)));
+        }
+      }
     }
-    return;
+    at = end + 1;
   }
-  in.clear();
-  in.seekg(after_keyword);
-  // Skip comment lines, then the counts: vertices faces edges.
-  std::string line;
-  long long vertices = -1, faces = -1;
-  while (std::getline(in, line)) {
-    const size_t first = line.find_first_not_of(" \t\r");
-    if (first == std::string::npos || line[first] == '#') continue;
-    std::istringstream counts(line);
-    if (!(counts >> vertices >> faces)) vertices = faces = -1;
-    break;
-  }
-  const size_t limit = text.size();
-  if (vertices < 0 || faces < 0 || static_cast<unsigned long long>(vertices) > limit ||
-      static_cast<unsigned long long>(faces) > limit) {
-    fail(fmt::format("counts ({} vertices, {} faces) are missing or more than the file's {} bytes can hold",
-                     vertices, faces, limit));
-  }
+  return text;
 }
 
-}  // namespace
-
-namespace {
-TriangleMesh ReadCheckedMesh(std::istream& in, const std::string& format, const std::string& source);
-
-TriangleMesh ReadMesh(std::istream& in, const std::string& format, const std::string& source) {
-  QuietOpenMesh();
-  if (format == "ply" || format == "off") {
-    // Read whole (these are the CLI's formats; the server takes OBJ) to check the header before OpenMesh.
-    std::string text((std::istreambuf_iterator<char>(in)), std::istreambuf_iterator<char>());
-    if (format == "ply") {
-      CheckPlyHeader(text, source);
-    } else {
-      CheckOffHeader(text, source);
-    }
-    std::istringstream checked(text);
-    return ReadCheckedMesh(checked, format, source);
-  }
-  return ReadCheckedMesh(in, format, source);
-}
-
-TriangleMesh ReadCheckedMesh(std::istream& in, const std::string& format, const std::string& source) {
-  PolyMesh scratch;
-  RawImporter importer(scratch);
-  OpenMesh::IO::Options options;
-  if (!OpenMesh::IO::IOManager().read(in, format, importer, options)) {
-    throw Error(ErrorCode::kInvalidInput, source + ": OpenMesh could not parse it as ." + format);
-  }
-  const std::string& path = source;
-
+// Fan-triangulates the polygons as listed (corner 0 with each following pair), then validates.
+TriangleMesh Triangulate(const PolygonSoup& soup, const std::string& path) {
+  const auto& [points, polygons] = soup;
   TriangleMesh mesh;
   mesh.source = path;
-  mesh.name = source;
-  mesh.vertices.resize(static_cast<Eigen::Index>(importer.points.size()), 3);
-  for (size_t i = 0; i < importer.points.size(); ++i) {
-    for (int c = 0; c < 3; ++c) mesh.vertices(static_cast<Eigen::Index>(i), c) = importer.points[i][c];
+  mesh.name = path;
+  mesh.vertices.resize(static_cast<Eigen::Index>(points.size()), 3);
+  for (size_t i = 0; i < points.size(); ++i) {
+    for (int c = 0; c < 3; ++c) mesh.vertices(static_cast<Eigen::Index>(i), c) = points[i][c];
   }
   size_t triangles = 0;
-  for (const auto& polygon : importer.polygons) {
+  for (const auto& polygon : polygons) {
     if (polygon.size() < 3) {
       throw Error(ErrorCode::kInvalidInput,
-                  fmt::format("{}: face {} has {} corners", path, &polygon - importer.polygons.data(),
-                              polygon.size()));
+                  fmt::format("{}: face {} has {} corners", path, &polygon - polygons.data(), polygon.size()));
     }
     triangles += polygon.size() - 2;
   }
   mesh.faces.resize(static_cast<Eigen::Index>(triangles), 3);
   Eigen::Index f = 0;
-  for (const auto& polygon : importer.polygons) {
+  for (const auto& polygon : polygons) {
     if (polygon.size() > 3) ++mesh.polygons_split;
     for (size_t k = 1; k + 1 < polygon.size(); ++k, ++f) {
       mesh.faces.row(f) << polygon[0], polygon[k], polygon[k + 1];
@@ -252,6 +268,27 @@ TriangleMesh ReadCheckedMesh(std::istream& in, const std::string& format, const 
   }
   ValidateMesh(mesh);
   return mesh;
+}
+
+TriangleMesh ReadWithOpenMesh(std::istream& in, const std::string& format, const std::string& source) {
+  PolyMesh scratch;
+  RawImporter importer(scratch);
+  OpenMesh::IO::Options options;
+  if (!OpenMesh::IO::IOManager().read(in, format, importer, options)) {
+    throw Error(ErrorCode::kInvalidInput, source + ": OpenMesh could not parse it as ." + format);
+  }
+  return Triangulate(importer.soup, source);
+}
+
+TriangleMesh ReadMesh(std::istream& in, const std::string& format, const std::string& source) {
+  QuietOpenMesh();
+  if (format == "stl") return ReadWithOpenMesh(in, format, source);
+  // Read whole: OBJ (the server's format) and PLY to check them before OpenMesh, OFF for our own reader.
+  std::string text((std::istreambuf_iterator<char>(in)), std::istreambuf_iterator<char>());
+  if (format == "off") return Triangulate(ReadOff(text, source), source);
+  text = format == "ply" ? CheckPly(std::move(text), source) : CheckObj(std::move(text), source);
+  std::istringstream checked(std::move(text));
+  return ReadWithOpenMesh(checked, format, source);
 }
 
 }  // namespace

@@ -312,6 +312,10 @@ class BadInputTest : public ::testing::Test {
     collider("mesh with a face past its vertices", [](v1::Collider& c) {
       c.set_mesh_obj("v 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 0 1\nf 1 2 3\nf 1 2 9\n");
     }, "mesh_obj: face 1 refers to vertex 8");
+    // A fuzzer finding: OpenMesh's OBJ reader aborted the process on a face corner without a vertex index.
+    collider("mesh with a face corner without a vertex", [](v1::Collider& c) {
+      c.set_mesh_obj("v 0 0 0\nv 1 0 0\nv 0 1 0\nvt 0 0\nf /2 3 1\n");
+    }, "mesh_obj: line 5: face corner '/2'");
     collider("mesh with a NaN vertex", [](v1::Collider& c) {
       c.set_mesh_obj("v 0 0 0\nv 1 0 nan\nv 0 1 0\nv 0 0 1\nf 1 3 2\nf 1 2 4\nf 2 3 4\nf 3 1 4\n");
     }, "mesh");

@@ -2,16 +2,21 @@
 // memory, latency percentiles reported), kill -9 mid-upload and mid-solve then a restart on the same cache
 // directory (nothing half-written is ever served), a cache filled past its budget (eviction, rebuild from
 // disk), and a slow reader (server memory stays flat).
+#include <fcntl.h>
 #include <gmock/gmock.h>
 #include <grpcpp/grpcpp.h>
 #include <gtest/gtest.h>
+#include <sys/file.h>
+#include <unistd.h>
 
 #include <atomic>
 #include <cstdlib>
 #include <filesystem>
 #include <fstream>
+#include <map>
 #include <mutex>
 #include <set>
+#include <sstream>
 #include <thread>
 
 #include "integration/server_process.h"
@@ -130,7 +135,7 @@ std::set<std::string> FilesIn(const std::filesystem::path& dir) {
 }
 
 // After a crash: every character the restarted server lists is whole (it builds and solves); no complete-
-// looking file is half-written.
+// looking file is half-written, and the restart removed the temporaries the killed writer left.
 void ExpectOnlyWholeCharacters(const std::string& address, const std::filesystem::path& cache) {
   Client client({address});
   for (const auto& listed : client.List()) {
@@ -140,9 +145,15 @@ void ExpectOnlyWholeCharacters(const std::string& address, const std::filesystem
     EXPECT_EQ(client.Solve(SweepRequest(c.id(), 1, weights), [](const v1::SolvedFrame&) {}), 1);
   }
   for (const auto& name : FilesIn(cache)) {
-    if (name.size() == 64 + 7 && name.substr(64) == ".sbchar") continue;
-    EXPECT_NE(name.find(".sbchar.tmp."), std::string::npos) << "an unexpected file " << name;
+    EXPECT_TRUE(name.size() == 64 + 7 && name.substr(64) == ".sbchar") << "an unexpected file " << name;
   }
+}
+
+std::string ReadAll(const std::filesystem::path& path) {
+  std::ifstream in(path, std::ios::binary);
+  std::stringstream bytes;
+  bytes << in.rdbuf();
+  return bytes.str();
 }
 
 TEST(FaultTest, KillMinusNineMidUploadServesNothingHalfWritten) {
@@ -184,6 +195,63 @@ TEST(FaultTest, KillMinusNineMidUploadServesNothingHalfWritten) {
   Client client({server->address()});
   const v1::Character c = client.Upload(cylinder.rest, cylinder.targets);
   EXPECT_EQ(client.Get(c.id()).id(), c.id());
+}
+
+TEST(FaultTest, ARestartRemovesStaleTemporariesAndNothingElse) {
+  namespace fs = std::filesystem;
+  TempDir cache, outside;
+  const fs::path dir = cache.path();
+  auto server = std::make_unique<ServerProcess>(dir.string());
+  ASSERT_FALSE(server->address().empty());
+  CylinderRig cylinder;
+  const v1::Character c = Client({server->address()}).Upload(cylinder.rest, cylinder.targets);
+  server->Kill();
+  const std::string id = c.id(), other(64, 'a');
+  const std::string character_file = ReadAll(dir / (id + ".sbchar"));
+  ASSERT_FALSE(character_file.empty());
+
+  // What writers killed mid-write leave: this version's names and earlier ones' (a decimal suffix).
+  const std::vector<std::string> stale = {id + ".sbchar.tmp.4242.00f1e2d3c4b5a697",
+                                          other + ".sbchar.tmp.7.12345678901234"};
+  for (const auto& name : stale) std::ofstream(dir / name) << "half a character";
+  // A writer in another replica sharing the directory, alive: it holds the lock on its temporary.
+  const fs::path live = dir / (other + ".sbchar.tmp.99.0123456789abcdef");
+  const int live_fd = ::open(live.c_str(), O_WRONLY | O_CREAT | O_CLOEXEC, 0644);
+  ASSERT_GE(live_fd, 0);
+  ASSERT_EQ(::flock(live_fd, LOCK_EX), 0);
+  // Not ours, whatever they look like: kept as they are.
+  const std::map<std::string, std::string> foreign = {
+      {"notes.txt", "keep me"},
+      {id + ".sbchar.tmp", "no pid, no suffix"},
+      {id + ".sbchar.tmp.12.xyz", "a suffix that is not hex"},
+      {id + ".sbchar.tmp.1.2.3", "one part too many"},
+      {"F" + id.substr(1) + ".sbchar.tmp.1.2", "an upper-case id"},
+      {id.substr(1) + ".sbchar.tmp.1.2", "a 63-digit id"},
+  };
+  for (const auto& [name, text] : foreign) std::ofstream(dir / name) << text;
+  fs::create_directory(dir / (other + ".sbchar.tmp.5.6"));
+  const std::string precious = outside.Write("precious", "outside the cache");
+  fs::create_symlink(precious, dir / (other + ".sbchar.tmp.8.9"));
+
+  const std::string log = outside.File("server.log");
+  server = std::make_unique<ServerProcess>(dir.string(), std::vector<std::string>{}, log);
+  ASSERT_FALSE(server->address().empty());
+  for (const auto& name : stale) EXPECT_FALSE(fs::exists(dir / name)) << name << " was left";
+  EXPECT_TRUE(fs::exists(live)) << "a live writer's temporary was removed";
+  for (const auto& [name, text] : foreign) EXPECT_EQ(ReadAll(dir / name), text) << name;
+  EXPECT_TRUE(fs::is_directory(dir / (other + ".sbchar.tmp.5.6")));
+  EXPECT_TRUE(fs::is_symlink(dir / (other + ".sbchar.tmp.8.9")));
+  EXPECT_EQ(ReadAll(precious), "outside the cache");
+  EXPECT_EQ(ReadAll(dir / (id + ".sbchar")), character_file);
+  EXPECT_THAT(ReadAll(log), ::testing::HasSubstr("removed 2 stale temporary files (1 in use by another writer, kept)"));
+  ::close(live_fd);
+
+  // The character is still listed and served, from its file.
+  Client client({server->address()});
+  const auto listed = client.List();
+  ASSERT_EQ(listed.size(), 1u);
+  EXPECT_EQ(listed[0].id(), id);
+  EXPECT_EQ(client.Solve(SweepRequest(id, 2, {0.5, 0.5}), [](const v1::SolvedFrame&) {}), 2);
 }
 
 TEST(FaultTest, KillMinusNineMidSolveThenARestartServesTheSameFrames) {

@@ -1,14 +1,20 @@
 // Transport security and tokens, end to end: a CA, server and client certificates made with the openssl
 // command at test time, a real server process, and the C++ client library and the CLI.
 #include <gmock/gmock.h>
+#include <grpcpp/generic/generic_stub.h>
 #include <grpcpp/grpcpp.h>
 #include <gtest/gtest.h>
 
 #include <array>
 #include <cstdio>
 #include <cstdlib>
+#include <fstream>
+#include <future>
 #include <memory>
+#include <sstream>
+#include <thread>
 
+#include "grpc/health/v1/health.grpc.pb.h"
 #include "integration/server_process.h"
 #include "springblend/client.h"
 #include "test_util.h"
@@ -63,6 +69,34 @@ class Certificates {
   bool ok_ = true;
 };
 
+using HealthStatus = grpc::health::v1::HealthCheckResponse;
+
+// Health.Check for the whole server (service ""), as a plaintext probe asks it (the kubelet's, or
+// grpc_health_probe without -tls). `status` says whether the call itself worked.
+HealthStatus::ServingStatus ProbeHealth(const std::string& address, grpc::Status* status) {
+  auto stub = grpc::health::v1::Health::NewStub(grpc::CreateChannel(address, grpc::InsecureChannelCredentials()));
+  grpc::ClientContext context;
+  context.set_deadline(std::chrono::system_clock::now() + std::chrono::seconds(5));
+  grpc::health::v1::HealthCheckRequest request;
+  HealthStatus response;
+  *status = stub->Check(&context, request, &response);
+  return response.status();
+}
+
+// One server reflection request (list the services) as a unary call: OK where reflection is served, UNIMPLEMENTED
+// where it is not.
+grpc::StatusCode CallReflection(const std::shared_ptr<grpc::Channel>& channel) {
+  grpc::GenericStub stub(channel);
+  grpc::ClientContext context;
+  context.set_deadline(std::chrono::system_clock::now() + std::chrono::seconds(5));
+  grpc::Slice list_services(std::string("\x3a\x01*", 3));  // ServerReflectionRequest{list_services: "*"}
+  grpc::ByteBuffer request(&list_services, 1), response;
+  std::promise<grpc::Status> done;
+  stub.UnaryCall(&context, "/grpc.reflection.v1alpha.ServerReflection/ServerReflectionInfo", grpc::StubOptions(),
+                 &request, &response, [&done](grpc::Status status) { done.set_value(std::move(status)); });
+  return done.get_future().get().error_code();
+}
+
 class SecurityTest : public ::testing::Test {
  protected:
   static void SetUpTestSuite() { certificates_ = new Certificates(); }
@@ -78,6 +112,14 @@ class SecurityTest : public ::testing::Test {
     auto server = std::make_unique<ServerProcess>(cache_.path().string(), flags);
     EXPECT_FALSE(server->address().empty()) << "the server did not start";
     return server;
+  }
+  static std::shared_ptr<grpc::Channel> TlsChannel(const std::string& address) {
+    std::ifstream in(File("ca.pem"));
+    std::stringstream ca;
+    ca << in.rdbuf();
+    grpc::SslCredentialsOptions ssl;
+    ssl.pem_root_certs = ca.str();
+    return grpc::CreateChannel(address, grpc::SslCredentials(ssl));
   }
   ClientOptions Tls(const std::string& address) const {
     ClientOptions options{address, std::chrono::seconds(20)};
@@ -204,6 +246,61 @@ TEST_F(SecurityTest, TlsAndTokensTogetherThroughTheCli) {
       << "plaintext to a TLS server: unavailable";
 }
 
+TEST_F(SecurityTest, APlaintextHealthAddressBesideTlsServesHealthAndNothingElse) {
+  auto server = StartServer({"--tls-cert", File("server.pem"), "--tls-key", File("server.key"), "--health-address",
+                             "127.0.0.1:0", "--workers", "1", "--drain-seconds", "20"});
+  const std::string health = server->health_address();
+  ASSERT_FALSE(health.empty()) << "no 'health on' line";
+  ASSERT_NE(health, server->address());
+
+  // A plaintext probe gets SERVING there...
+  grpc::Status status;
+  EXPECT_EQ(ProbeHealth(health, &status), HealthStatus::SERVING);
+  EXPECT_TRUE(status.ok()) << status.error_message();
+  Client probe({health, std::chrono::seconds(5)});
+  EXPECT_TRUE(probe.Healthy());
+  // ...and nothing else: no characters, no solves, no reflection.
+  CylinderRig cylinder;
+  EXPECT_EQ(StatusOf([&] { probe.List(); }), grpc::StatusCode::UNIMPLEMENTED);
+  EXPECT_EQ(StatusOf([&] { probe.Upload(cylinder.rest, cylinder.targets); }), grpc::StatusCode::UNIMPLEMENTED);
+  EXPECT_EQ(StatusOf([&] { probe.Solve(SweepRequest(std::string(64, 'a'), 1, {0.5, 0.5}), [](const v1::SolvedFrame&) {}); }),
+            grpc::StatusCode::UNIMPLEMENTED);
+  EXPECT_EQ(CallReflection(grpc::CreateChannel(health, grpc::InsecureChannelCredentials())),
+            grpc::StatusCode::UNIMPLEMENTED);
+  EXPECT_EQ(CallReflection(TlsChannel(server->address())), grpc::StatusCode::OK) << "reflection on the main port";
+
+  // The main port still demands TLS, health included.
+  Client plaintext({server->address(), std::chrono::seconds(5)});
+  EXPECT_FALSE(plaintext.Healthy());
+  EXPECT_EQ(StatusOf([&] { plaintext.List(); }), grpc::StatusCode::UNAVAILABLE);
+  EXPECT_NE(ProbeHealth(server->address(), &status), HealthStatus::SERVING);
+  EXPECT_EQ(status.error_code(), grpc::StatusCode::UNAVAILABLE);
+  Client client(Tls(server->address()));
+  EXPECT_TRUE(client.Healthy());
+
+  // SIGTERM while a solve streams: the server drains it, and the health address says NOT_SERVING meanwhile.
+  const v1::Character c = client.Upload(cylinder.rest, cylinder.targets);
+  auto stub = v1::SolveService::NewStub(TlsChannel(server->address()));
+  grpc::ClientContext context;
+  auto reader = stub->Solve(&context, SweepRequest(c.id(), 2000, {1, 1}));
+  v1::SolvedFrame frame;
+  ASSERT_TRUE(reader->Read(&frame));
+  ASSERT_EQ(kill(server->pid(), SIGTERM), 0);
+  HealthStatus::ServingStatus seen = HealthStatus::SERVING;
+  for (int i = 0; i < 50 && seen == HealthStatus::SERVING; ++i) {
+    std::this_thread::sleep_for(std::chrono::milliseconds(100));
+    seen = ProbeHealth(health, &status);
+  }
+  EXPECT_EQ(seen, HealthStatus::NOT_SERVING);
+  EXPECT_TRUE(status.ok()) << status.error_message();
+  EXPECT_TRUE(reader->Read(&frame)) << "the stream in flight still drains";
+  context.TryCancel();
+  while (reader->Read(&frame)) {
+  }
+  reader->Finish();
+  EXPECT_EQ(server->Stop(), 0);
+}
+
 TEST(SecurityFlags, BadTlsOrTokenFlagsStopTheServerWithAMessage) {
   TempDir cache, config;
   EXPECT_TRUE(ServerProcess(cache.path().string(), {"--tls-cert", config.Write("cert.pem", "not a certificate")})
@@ -215,6 +312,20 @@ TEST(SecurityFlags, BadTlsOrTokenFlagsStopTheServerWithAMessage) {
                   .empty());
   EXPECT_TRUE(
       ServerProcess(cache.path().string(), {"--tokens-file", config.Write("tokens", "superuser x\n")}).address().empty());
+  EXPECT_TRUE(ServerProcess(cache.path().string(), {"--health-address", "127.0.0.1:99999"}).address().empty());
+  EXPECT_TRUE(ServerProcess(cache.path().string(), {"--health-address", "no-port"}).address().empty());
+  // A port another process listens on.
+  const int taken = socket(AF_INET, SOCK_STREAM | SOCK_CLOEXEC, 0);
+  sockaddr_in address{};
+  address.sin_family = AF_INET;
+  address.sin_addr.s_addr = htonl(INADDR_LOOPBACK);
+  socklen_t length = sizeof(address);
+  ASSERT_EQ(bind(taken, reinterpret_cast<sockaddr*>(&address), sizeof(address)), 0);
+  ASSERT_EQ(listen(taken, 1), 0);
+  ASSERT_EQ(getsockname(taken, reinterpret_cast<sockaddr*>(&address), &length), 0);
+  const std::string in_use = "127.0.0.1:" + std::to_string(ntohs(address.sin_port));
+  EXPECT_TRUE(ServerProcess(cache.path().string(), {"--health-address", in_use}).address().empty());
+  close(taken);
 }
 
 }  // namespace

@@ -3,6 +3,7 @@
 #pragma once
 
 #include <arpa/inet.h>
+#include <fcntl.h>
 #include <gtest/gtest.h>
 #include <netinet/in.h>
 #include <signal.h>
@@ -19,16 +20,21 @@
 
 namespace springblend::testing {
 
-// A server process; stopped with SIGTERM (the graceful path) when the object goes.
+// A server process; stopped with SIGTERM (the graceful path) when the object goes. Its log (stderr) goes to
+// log_file when one is given.
 class ServerProcess {
  public:
-  ServerProcess(const std::string& cache_dir, std::vector<std::string> extra = {}) {
+  ServerProcess(const std::string& cache_dir, std::vector<std::string> extra = {}, const std::string& log_file = "") {
     int out[2];
     EXPECT_EQ(pipe(out), 0);
     pid_ = fork();
     if (pid_ == 0) {
       dup2(out[1], STDOUT_FILENO);
       close(out[0]);
+      if (!log_file.empty()) {
+        const int log = open(log_file.c_str(), O_WRONLY | O_CREAT | O_TRUNC | O_CLOEXEC, 0644);
+        if (log >= 0) dup2(log, STDERR_FILENO);
+      }
       std::vector<std::string> args = {SPRINGBLEND_SERVER, "--listen", "127.0.0.1:0", "--cache-dir", cache_dir};
       args.insert(args.end(), extra.begin(), extra.end());
       std::vector<char*> argv;
@@ -38,7 +44,8 @@ class ServerProcess {
       _exit(127);
     }
     close(out[1]);
-    // Lines until "springblend-server listening on 127.0.0.1:PORT" (after "... metrics on http://...").
+    // Lines until "springblend-server listening on 127.0.0.1:PORT" (after "... metrics on http://..." and
+    // "... health on 127.0.0.1:PORT").
     for (int lines = 0; lines < 4 && address_.empty(); ++lines) {
       std::string line;
       char c;
@@ -47,6 +54,8 @@ class ServerProcess {
       if (colon == std::string::npos) break;
       if (line.find("metrics on") != std::string::npos) {
         metrics_port_ = std::stoi(line.substr(colon + 1));
+      } else if (line.find("health on") != std::string::npos) {
+        health_address_ = "127.0.0.1:" + line.substr(colon + 1);
       } else if (line.find("listening on") != std::string::npos) {
         address_ = "127.0.0.1:" + line.substr(colon + 1);
       }
@@ -54,6 +63,8 @@ class ServerProcess {
     close(out[0]);
   }
   int metrics_port() const { return metrics_port_; }
+  // The plaintext health-only address (--health-address), empty without one.
+  const std::string& health_address() const { return health_address_; }
   ~ServerProcess() { Stop(); }
   // kill -9: no draining, no clean-up; what a crash or an OOM kill leaves.
   void Kill() {
@@ -83,6 +94,7 @@ class ServerProcess {
  private:
   pid_t pid_ = -1;
   std::string address_;
+  std::string health_address_;
   int metrics_port_ = 0;
 };
 

@@ -4,6 +4,8 @@
 #include <gtest/gtest.h>
 
 #include <atomic>
+#include <filesystem>
+#include <fstream>
 #include <mutex>
 #include <set>
 #include <thread>
@@ -66,6 +68,41 @@ TEST(StoreThreads, PutGetListDeleteFromManyThreadsUnderATinyBudget) {
     ASSERT_NE(store.Get(ids[i]), nullptr);
   }
   EXPECT_GT(store.stats().evictions, 0);
+}
+
+// A replica starting on a shared cache directory removes what killed writers left, while another replica keeps
+// writing there: every file a live writer holds must survive (it locks its temporary until the rename).
+TEST(StoreThreads, AStartUpCleanupBesideALiveWriterRemovesOnlyDeadWritersFiles) {
+  namespace fs = std::filesystem;
+  testing::TempDir dir;
+  const std::string dead = (dir.path() / (std::string(64, 'c') + ".sbchar.tmp.77.0123abcd")).string();
+  std::ofstream(dead) << "half a character";
+  CharacterStore writer({dir.path().string(), 1LL << 30});
+  CharacterStore starting({dir.path().string(), 1LL << 30});
+  std::atomic<bool> done{false};
+  std::atomic<int> removed{0}, in_use{0};
+  std::thread cleaner([&] {
+    while (!done) {
+      const CharacterStore::Cleanup c = starting.RemoveStaleTemporaries();
+      removed += c.removed;
+      in_use += c.in_use;
+    }
+  });
+  std::vector<std::string> ids;
+  for (int i = 0; i < 40; ++i) {
+    CharacterData character = Tetrahedron(1.0 + 0.01 * i);
+    character.options.interior = false;  // no TetGen: many quick writes
+    ids.push_back(writer.Put(character).first->id);
+  }
+  done = true;
+  cleaner.join();
+  EXPECT_EQ(removed, 1) << "only the dead writer's file";
+  EXPECT_FALSE(fs::exists(dead));
+  std::cout << "the cleaner met " << in_use << " temporaries in use and kept them\n";
+  for (const auto& id : ids) EXPECT_TRUE(fs::exists(dir.path() / (id + ".sbchar"))) << id;
+  for (const auto& file : fs::directory_iterator(dir.path())) {
+    EXPECT_EQ(file.path().extension(), ".sbchar") << file.path() << " was left behind";
+  }
 }
 
 TEST(PoolThreads, EveryAcceptedJobRunsOnceFromManySubmitters) {

@@ -18,8 +18,10 @@ struct TriangleMesh {
   int polygons_split = 0;  // polygons with more than three corners that loading fan-triangulated
 };
 
-// Load OBJ, PLY, OFF or STL (by extension) through OpenMesh, keeping the file's vertex order exactly;
-// polygons are fan-triangulated. Throws Error naming the file and the offending element.
+// Load OBJ, PLY, OFF or STL (by extension), keeping the file's vertex order exactly; polygons are
+// fan-triangulated. OBJ, PLY and STL go through OpenMesh (OBJ face corners and PLY headers are checked first, OBJ
+// material libraries never opened), ASCII OFF through a strict reader of our own (binary OFF is refused). Throws
+// Error naming the file and the offending element (and the line, for OFF and OBJ face corners).
 TriangleMesh LoadMesh(const std::string& path);
 
 // Parse a mesh from memory; format is "obj", "ply", "off" or "stl"; source names it in messages.
