@@ -682,7 +682,7 @@ bool Solver::Impl::PreconditionedCg(double forcing, SolveSummary& summary) {
     ++summary.cg_iterations;
     const double curvature = cg_direction_.dot(cg_product_);
     if (!(curvature > 0.0) || !std::isfinite(curvature)) {  // indefinite along d
-      if (std::isfinite(curvature) && cg_direction_.allFinite()) {
+      if (options_.follow_negative_curvature && std::isfinite(curvature) && cg_direction_.allFinite()) {
         negative_direction_ = cg_direction_;
         has_negative_direction_ = true;
       }
@@ -778,7 +778,7 @@ void Solver::Impl::Newton(SolveSummary& summary) {
     longest = std::sqrt(longest);
     const double max_move = options_.max_step_fraction * rig.summary().mean_rest_length;
     if (longest > max_move) step_ *= max_move / longest;
-    if (has_negative_direction_ && options_.follow_negative_curvature) {
+    if (has_negative_direction_) {
       // On a saddle (a buckling lip, a compressed fold) the projected Newton step barely moves along the
       // unstable mode, and Newton crawls off it over dozens of iterations. The energy falls fastest along the
       // negative curvature the conjugate gradients met: add it, downhill and as long as a step may be, and
