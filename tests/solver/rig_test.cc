@@ -6,7 +6,7 @@
 
 #include <set>
 
-#include "hessian_pattern.h"
+#include "rig_internals.h"
 #include "test_util.h"
 
 namespace springblend {
@@ -152,7 +152,7 @@ TEST(Rig, RefusesOptionsOutOfRange) {
 
 TEST(HessianPattern, SlotsAddressTheRightEntries) {
   auto rig = LoadRig("cylinder/cylinder.obj", {"cylinder/poses-2_cylinder-1.obj"});
-  const auto& p = rig->hessian_pattern();
+  const auto& p = *rig->internals().pattern;
   const auto& m = p.matrix;
   const int n = rig->num_vertices();
   ASSERT_EQ(m.n, 3 * n);

@@ -17,12 +17,6 @@ namespace springblend {
 
 using Tetrahedra = Eigen::Matrix<int, Eigen::Dynamic, 4, Eigen::RowMajor>;  // #T by 4, 0-based
 
-namespace internal {
-struct HessianPattern;
-class SparseCholesky;
-struct AnchorMotion;
-}  // namespace internal
-
 enum class SpringKind : std::uint8_t {
   kStructure = 0,  // a mesh edge
   kBending = 1,    // the two vertices opposite an interior edge (distance-2 neighbours)
@@ -150,7 +144,7 @@ class Rig {
   const Points& shape(int s) const { return shapes_[s]; }
   // Tetrahedra of the rest volume (positively oriented in the rest shape); empty without an interior.
   const Tetrahedra& tetrahedra() const { return tets_; }
-  // The anchor: vertex ids, their rest positions' centroid, and each target's rigid motion of them.
+  // The anchor: vertex ids and their rest positions' centroid.
   const std::vector<int>& anchor_vertices() const { return anchor_; }
   int num_springs() const { return static_cast<int>(spring_a_.size()); }
   const TriangleMesh& rest() const { return rest_; }
@@ -177,14 +171,14 @@ class Rig {
   const std::vector<int>& vertex_springs() const { return vertex_springs_; }
 
   const Eigen::Vector3d& anchor_centroid() const { return anchor_centroid_; }
-  const std::vector<internal::AnchorMotion>& anchor_motions() const { return anchor_motions_; }
 
-  const internal::HessianPattern& hessian_pattern() const { return *pattern_; }
-  // The symbolic factorization, analysed once; solvers clone it and only refactor numerically.
-  const internal::SparseCholesky& analyzed_cholesky() const { return *cholesky_; }
+  // What the solver keeps beyond the data above (the Hessian's pattern and symbolic factorization, the
+  // targets' anchor motions); opaque outside the solver library.
+  struct Internals;
+  const Internals& internals() const { return *internals_; }
 
  private:
-  Rig() = default;
+  Rig();
   friend class RigBuilder;
 
   RigOptions options_;
@@ -195,9 +189,6 @@ class Rig {
   Tetrahedra tets_;
   std::vector<int> anchor_;
   Eigen::Vector3d anchor_centroid_ = Eigen::Vector3d::Zero();
-  std::vector<internal::AnchorMotion> anchor_motions_;
-  double shell_offset_ = 0.0;
-  Points shell_normals_rest_;
   std::vector<int> spring_a_, spring_b_;
   std::vector<SpringKind> spring_kind_;
   std::vector<double> rest_length0_;
@@ -206,8 +197,7 @@ class Rig {
   std::vector<int> fixed_vertices_;
   std::array<int, 3> gauge_ = {-1, -1, -1};
   std::vector<int> vertex_spring_offsets_, vertex_springs_;
-  std::unique_ptr<internal::HessianPattern> pattern_;
-  std::unique_ptr<internal::SparseCholesky> cholesky_;
+  std::unique_ptr<Internals> internals_;
 };
 
 }  // namespace springblend

@@ -1,0 +1,142 @@
+// The linear system with and without held coordinates, over every sparse Cholesky backend.
+#include "linear_system.h"
+
+#include <gtest/gtest.h>
+
+#include <Eigen/Dense>
+
+#include "hessian_pattern.h"
+
+namespace springblend::internal {
+namespace {
+
+// A chain of springs with extra diagonals: a small SPD matrix in the Hessian's 3n x 3n pattern.
+struct Chain {
+  std::vector<int> a, b;
+  HessianPattern pattern;
+  std::vector<double> values;
+  Eigen::MatrixXd dense;
+  explicit Chain(int vertices) {
+    for (int v = 0; v + 1 < vertices; ++v) a.push_back(v), b.push_back(v + 1);
+    for (int v = 0; v + 2 < vertices; ++v) a.push_back(v), b.push_back(v + 2);
+    pattern = HessianPattern::Build(vertices, a, b);
+    const int n = 3 * vertices;
+    dense = Eigen::MatrixXd::Zero(n, n);
+    for (int j = 0; j < n; ++j) dense(j, j) = 8.0 + 0.1 * j;
+    for (size_t q = 0; q < a.size(); ++q) {
+      for (int c = 0; c < 3; ++c) {
+        const double w = -1.0 - 0.05 * static_cast<double>(q) - 0.2 * c;
+        dense(3 * a[q] + c, 3 * b[q] + c) = dense(3 * b[q] + c, 3 * a[q] + c) = w;
+      }
+    }
+    values.assign(pattern.matrix.row_indices.size(), 0.0);
+    for (int j = 0; j < n; ++j) {
+      for (int k = pattern.matrix.column_starts[j]; k < pattern.matrix.column_starts[j + 1]; ++k) {
+        values[k] = dense(pattern.matrix.row_indices[k], j);
+      }
+    }
+  }
+  // The values with identity rows and columns for held coordinates.
+  std::vector<double> Held(const std::vector<char>& held) const {
+    std::vector<double> out = values;
+    for (int j = 0; j < pattern.matrix.n; ++j) {
+      for (int k = pattern.matrix.column_starts[j]; k < pattern.matrix.column_starts[j + 1]; ++k) {
+        const int i = pattern.matrix.row_indices[k];
+        if (held[i] || held[j]) out[k] = i == j ? 1.0 : 0.0;
+      }
+    }
+    return out;
+  }
+};
+
+class LinearSystemTest : public ::testing::TestWithParam<LinearSolverType> {};
+
+TEST_P(LinearSystemTest, SolvesTheFreeCoordinatesWithAFewOrManyHeld) {
+  const Chain chain(20);
+  const int n = chain.pattern.matrix.n;
+  auto analyzed = SparseCholesky::Create(GetParam());
+  analyzed->Analyze(chain.pattern.matrix);
+  LinearSystem system(chain.pattern.matrix, *analyzed, GetParam());
+  const Eigen::VectorXd rhs = Eigen::VectorXd::LinSpaced(n, 1.0, -2.0);
+  for (const int held_count : {0, 3, 30}) {  // none, few (full system), many (reduced system)
+    std::vector<char> held(n, 0);
+    for (int d = 0; d < held_count; ++d) held[(7 * d) % n] = 1;
+    std::vector<int> free;
+    for (int d = 0; d < n; ++d) {
+      if (!held[d]) free.push_back(d);
+    }
+    Eigen::VectorXd b = rhs;
+    for (int d = 0; d < n; ++d) {
+      if (held[d]) b[d] = 0.0;
+    }
+    system.Select(held);
+    ASSERT_EQ(system.Factorize(chain.Held(held)), FactorStatus::kOk);
+    Eigen::VectorXd x(n);
+    system.Solve(b, held, &x);
+    // The reference: the dense system restricted to the free coordinates.
+    const auto k = static_cast<Eigen::Index>(free.size());
+    Eigen::MatrixXd a_ff(k, k);
+    Eigen::VectorXd b_f(k);
+    for (Eigen::Index i = 0; i < k; ++i) {
+      b_f[i] = b[free[i]];
+      for (Eigen::Index j = 0; j < k; ++j) a_ff(i, j) = chain.dense(free[i], free[j]);
+    }
+    const Eigen::VectorXd x_f = a_ff.llt().solve(b_f);
+    for (Eigen::Index i = 0; i < k; ++i) EXPECT_NEAR(x[free[i]], x_f[i], 1e-12) << "held " << held_count;
+    for (int d = 0; d < n; ++d) {
+      if (held[d]) {
+        EXPECT_EQ(x[d], 0.0);
+      }
+    }
+    EXPECT_TRUE(system.FactorCovers(held));
+  }
+}
+
+TEST_P(LinearSystemTest, AReducedFactorCoversOnlyTheCoordinatesItWasBuiltFor) {
+  const Chain chain(20);
+  const int n = chain.pattern.matrix.n;
+  auto analyzed = SparseCholesky::Create(GetParam());
+  analyzed->Analyze(chain.pattern.matrix);
+  LinearSystem system(chain.pattern.matrix, *analyzed, GetParam());
+  EXPECT_FALSE(system.FactorCovers(std::vector<char>(n, 0)));  // nothing factored yet
+  std::vector<char> held(n, 0);
+  for (int d = 0; d < n / 2; ++d) held[d] = 1;  // many: the reduced system
+  system.Select(held);
+  ASSERT_EQ(system.Factorize(chain.Held(held)), FactorStatus::kOk);
+  std::vector<char> more = held;
+  more[n - 1] = 1;
+  EXPECT_TRUE(system.FactorCovers(more));   // fewer free coordinates: still covered
+  std::vector<char> fewer = held;
+  fewer[0] = 0;
+  EXPECT_FALSE(system.FactorCovers(fewer));  // a coordinate it never saw
+  EXPECT_GT(system.SolvesPerFactorization(), 0.0);
+  system.DropFactor();
+  EXPECT_FALSE(system.FactorCovers(held));
+}
+
+TEST_P(LinearSystemTest, TheLadderClimbsPastAnIndefiniteMatrix) {
+  const Chain chain(10);
+  auto analyzed = SparseCholesky::Create(GetParam());
+  analyzed->Analyze(chain.pattern.matrix);
+  LinearSystem system(chain.pattern.matrix, *analyzed, GetParam());
+  system.Select(std::vector<char>(chain.pattern.matrix.n, 0));
+  std::vector<double> values;
+  // Indefinite unless the diagonal is shifted by at least 20 (the matrix's diagonal is about 8).
+  const auto assemble = [&](double, double shift) -> const std::vector<double>& {
+    values = chain.values;
+    for (int j = 0; j < chain.pattern.matrix.n; ++j) values[chain.pattern.matrix.column_starts[j + 1] - 1] -= 20.0 - shift;
+    return values;
+  };
+  const LadderResult result = FactorizeWithLadder(system, 0, 1000.0, assemble);
+  EXPECT_EQ(result.status, FactorStatus::kOk);
+  EXPECT_EQ(result.rung, kLadderRungs - 1);  // only the largest shift (1000 x 1.0) is enough
+  EXPECT_EQ(result.factorizations, static_cast<int>(kLadderRungs));
+  EXPECT_EQ(result.shifted, 4);
+}
+
+INSTANTIATE_TEST_SUITE_P(Backends, LinearSystemTest,
+                         ::testing::Values(LinearSolverType::kCholmodSupernodal, LinearSolverType::kEigenSimplicial),
+                         [](const auto& backend) { return std::string(ToString(backend.param)); });
+
+}  // namespace
+}  // namespace springblend::internal
