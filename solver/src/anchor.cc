@@ -1,5 +1,6 @@
 #include "anchor.h"
 
+#include <Eigen/Geometry>
 #include <Eigen/SVD>
 #include <algorithm>
 #include <cmath>
@@ -8,15 +9,11 @@
 namespace springblend::internal {
 
 AnchorMotion FitRigidMotion(const Points& from, const Points& to) {
-  const Eigen::RowVector3d from_mean = from.colwise().mean();
-  const Eigen::RowVector3d to_mean = to.colwise().mean();
-  const Eigen::Matrix3d covariance = (from.rowwise() - from_mean).transpose() * (to.rowwise() - to_mean);
-  Eigen::JacobiSVD<Eigen::Matrix3d> svd(covariance, Eigen::ComputeFullU | Eigen::ComputeFullV);
-  Eigen::Matrix3d correction = Eigen::Matrix3d::Identity();
-  if ((svd.matrixV() * svd.matrixU().transpose()).determinant() < 0.0) correction(2, 2) = -1.0;
+  // Kabsch: the least-squares rotation and translation (no scaling) taking from onto to.
+  const Eigen::Matrix4d fit = Eigen::umeyama(from.transpose(), to.transpose(), false);
   AnchorMotion motion;
-  motion.rotation = Eigen::Quaterniond(svd.matrixV() * correction * svd.matrixU().transpose()).normalized();
-  motion.offset = (to_mean - from_mean).transpose();
+  motion.rotation = Eigen::Quaterniond(Eigen::Matrix3d(fit.topLeftCorner<3, 3>())).normalized();
+  motion.offset = (to.colwise().mean() - from.colwise().mean()).transpose();
   return motion;
 }
 

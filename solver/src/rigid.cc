@@ -27,17 +27,10 @@ bool ToCanonicalFrame(const std::array<int, 3>& g, Eigen::VectorXd* x) {
 }
 
 void AlignRigidly(const Points& reference, Points* points) {
+  // Kabsch on the leading rows; the fit moves every row.
   Points& p = *points;
-  const auto fitted = p.topRows(reference.rows());
-  const Eigen::RowVector3d p_mean = fitted.colwise().mean();
-  const Eigen::RowVector3d r_mean = reference.colwise().mean();
-  const Eigen::Matrix3d covariance =
-      (fitted.rowwise() - p_mean).transpose() * (reference.rowwise() - r_mean);
-  Eigen::JacobiSVD<Eigen::Matrix3d> svd(covariance, Eigen::ComputeFullU | Eigen::ComputeFullV);
-  Eigen::Matrix3d correction = Eigen::Matrix3d::Identity();
-  if ((svd.matrixV() * svd.matrixU().transpose()).determinant() < 0.0) correction(2, 2) = -1.0;
-  const Eigen::Matrix3d rotation = svd.matrixV() * correction * svd.matrixU().transpose();
-  p = ((p.rowwise() - p_mean) * rotation.transpose()).rowwise() + r_mean;
+  const Eigen::Matrix4d fit = Eigen::umeyama(p.topRows(reference.rows()).transpose(), reference.transpose(), false);
+  p = (p * fit.topLeftCorner<3, 3>().transpose()).rowwise() + fit.topRightCorner<3, 1>().transpose();
 }
 
 namespace {
