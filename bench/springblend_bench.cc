@@ -45,7 +45,12 @@ double MsSince(Clock::time_point start) {
 // ---- Solver configurations -------------------------------------------------------------------------------
 
 // The solver as shipped: what the ms/step columns measure.
-SolveOptions DefaultOptions() { return SolveOptions{}; }
+std::string g_method = "newton";
+SolveOptions DefaultOptions() {
+  SolveOptions options;
+  options.method = SolveMethodFromString(g_method);
+  return options;
+}
 // --residual-tolerance / --step-tolerance override the default solver's (and the baseline's) tolerances.
 std::optional<double> g_residual_tolerance, g_step_tolerance;
 SolveOptions WithTolerances(SolveOptions options) {
@@ -60,7 +65,6 @@ SolveOptions WithTolerances(SolveOptions options) {
 SolveOptions BaselineOptions() {
   SolveOptions options;
   options.reuse_factorization = false;
-  options.extrapolate = false;
   return options;
 }
 
@@ -212,10 +216,11 @@ SweepRun RunSweep(const std::shared_ptr<const Rig>& rig, const SolveOptions& opt
     run.summaries.push_back(summary);
     if (positions != nullptr) positions->push_back(frame_positions);
     std::cerr << fmt::format("  {} frame {}/{}: {:.1f} ms, {} Newton iterations, {} factorizations ({:.1f} ms), "
-                             "{} CG iterations, {}\n",
+                             "{} CG iterations, {} L-BFGS, {} fallbacks, split spring {:.1f} solve {:.1f} search {:.1f} ms, {}\n",
                              what, i, frames.size() - 1, run.ms.back(), summary.newton_iterations,
                              summary.factorizations, summary.factorize_ms, summary.cg_iterations,
-                             ToString(summary.termination));
+                             summary.lbfgs_iterations, summary.newton_fallbacks, summary.spring_ms,
+                             summary.linear_solve_ms, summary.line_search_ms, ToString(summary.termination));
   }
   run.stats = ComputeStats(run.ms, run.summaries);
   return run;
@@ -612,6 +617,7 @@ int Main(int argc, char** argv) {
   app.add_option("--repo", settings.repo, "the springblend source tree (for tests/data and git describe)");
   app.add_option("--shared", settings.shared, "the shared meshes (default: <repo>/../shared/meshes)");
   app.add_option("--out", settings.out, "output directory for bench.md, bench.json and the plot");
+  app.add_option("--method", g_method, "the measured solve method: newton, newton-laplacian or lbfgs");
   app.add_option("--residual-tolerance", g_residual_tolerance, "override SolveOptions::residual_tolerance");
   app.add_option("--step-tolerance", g_step_tolerance, "override SolveOptions::step_tolerance");
   try {

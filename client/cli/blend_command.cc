@@ -38,7 +38,7 @@ struct BlendArgs {
   int max_iterations = SolveOptions{}.max_iterations;
   std::string solver = "cholmod";
   std::string hessian = "true";
-  bool no_warm_start = false;
+  bool no_target_paths = false;
   bool verbose = false;
   std::vector<std::string> colliders;
   std::vector<std::string> pins;
@@ -102,6 +102,7 @@ int RunBlend(const BlendArgs& args) {
   rig_options.anchor = !args.no_anchor;
   rig_options.bending_stiffness = args.bending_stiffness;
   rig_options.linear_solver = LinearSolverTypeFromString(args.solver);
+  rig_options.target_paths = !args.no_target_paths;
 
   TriangleMesh rest = LoadMesh(args.rest);
   std::vector<TriangleMesh> targets;
@@ -112,7 +113,7 @@ int RunBlend(const BlendArgs& args) {
   SolveOptions options;
   options.residual_tolerance = args.tolerance;
   options.max_iterations = args.max_iterations;
-  options.warm_start = !args.no_warm_start;
+  options.use_target_paths = !args.no_target_paths;
   options.linear = args.linear;
   if (args.hessian == "projected") {
     options.hessian = HessianMode::kProjected;
@@ -198,7 +199,7 @@ Runner AddBlendCommand(CLI::App& app) {
       ->delimiter(',');
   cmd->add_option("--out", args->out, "output OBJ file, or directory with --sweep")->required();
   cmd->add_option("--sweep", args->sweep,
-                  "solve N frames with alpha = 0 .. 1 times the weights, warm-started, into "
+                  "solve N frames with alpha = 0 .. 1 times the weights, each alone, into "
                   "OUT/frame_0000.obj ...")
       ->check(CLI::Range(1, 100000));
   cmd->add_flag("--linear", args->linear, "output the plain linear blendshape instead (for comparison)");
@@ -217,7 +218,9 @@ Runner AddBlendCommand(CLI::App& app) {
   cmd->add_option("--solver", args->solver, "sparse Cholesky backend: cholmod or eigen");
   cmd->add_option("--hessian", args->hessian,
                   "true (true Hessian, projected when not positive definite) or projected");
-  cmd->add_flag("--no-warm-start", args->no_warm_start, "start every frame from the linear blendshape");
+  cmd->add_flag("--no-target-paths", args->no_target_paths,
+                "build no target paths and start every frame from the linear blendshape (faster to build, slower "
+                "to solve; thin parts may buckle the other way)");
   cmd->add_flag("-v,--verbose", args->verbose, "print the rig summary as JSON on stderr");
   cmd->add_option("--collider", args->colliders,
                   "an obstacle: sphere:cx,cy,cz,r | capsule:x1,y1,z1,x2,y2,z2,r | box:cx,cy,cz,hx,hy,hz | "

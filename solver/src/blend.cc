@@ -31,6 +31,23 @@ const char* ToString(Termination termination) {
   return "unknown";
 }
 
+const char* ToString(SolveMethod method) {
+  switch (method) {
+    case SolveMethod::kNewton: return "newton";
+    case SolveMethod::kNewtonLaplacian: return "newton-laplacian";
+    case SolveMethod::kLbfgs: return "lbfgs";
+  }
+  return "unknown";
+}
+
+SolveMethod SolveMethodFromString(const std::string& name) {
+  for (SolveMethod m : {SolveMethod::kNewton, SolveMethod::kNewtonLaplacian, SolveMethod::kLbfgs}) {
+    if (name == ToString(m)) return m;
+  }
+  throw Error(ErrorCode::kInvalidInput,
+              fmt::format("unknown solve method '{}' (use newton, newton-laplacian or lbfgs)", name));
+}
+
 void SolveOptions::Validate() const {
   auto fail = [](const std::string& what) { throw Error(ErrorCode::kInvalidInput, what); };
   if (!(residual_tolerance > 0.0 && residual_tolerance < 1.0)) {
@@ -54,6 +71,12 @@ void SolveOptions::Validate() const {
   if (max_line_search_steps < 1 || max_line_search_steps > 60) {
     fail(fmt::format("solve option max_line_search_steps = {} is outside [1, 60]",
                      max_line_search_steps));
+  }
+  if (lbfgs_history < 1 || lbfgs_history > 100) {
+    fail(fmt::format("solve option lbfgs_history = {} is outside [1, 100]", lbfgs_history));
+  }
+  if (lbfgs_max_iterations < 1 || lbfgs_max_iterations > 10000) {
+    fail(fmt::format("solve option lbfgs_max_iterations = {} is outside [1, 10000]", lbfgs_max_iterations));
   }
   if (max_cg_iterations < 1 || max_cg_iterations > 10000) {
     fail(fmt::format("solve option max_cg_iterations = {} is outside [1, 10000]", max_cg_iterations));

@@ -30,6 +30,8 @@ bool Relax(const Rig& rig, internal::SpringSystem& springs, internal::LinearSyst
   problem.diagonal = rig.summary().bounding_box_diagonal;
   problem.mean_rest_length = rig.summary().mean_rest_length;
   internal::MinimizerSummary summary;
+  internal::MinimizerTiming timing;
+  problem.timing = &timing;
   newton.Minimize(problem, x, &summary);
   return summary.termination == internal::MinimizerTermination::kConverged;
 }

@@ -14,7 +14,14 @@
 namespace springblend::internal {
 
 enum class MinimizerType {
-  kInexactNewton,  // Newton steps by conjugate gradients preconditioned with a kept factorization
+  kInexactNewton,  // Newton steps by preconditioned conjugate gradients (see Preconditioner)
+  kLbfgs,          // L-BFGS with the scalar Laplacian as initial Hessian, finished by Newton on a stall
+};
+
+// What preconditions inexact Newton's conjugate gradients.
+enum class Preconditioner {
+  kKeptFactor,  // the last 3n x 3n factorization of the Hessian, refactored when it stops paying off
+  kLaplacian,   // the solver's scalar n x n Laplacian (laplacian.h): no 3n factorization unless CG fails
 };
 
 enum class HessianChoice {
@@ -35,6 +42,9 @@ struct MinimizerOptions {
   double refactor_cost_ratio = 0.5;
   bool follow_negative_curvature = false;
   double max_step_fraction = 2.0;    // of the mean rest length, per vertex and step
+  Preconditioner preconditioner = Preconditioner::kKeptFactor;
+  int lbfgs_history = 10;            // (s, y) pairs kept
+  int lbfgs_max_iterations = 100;    // before Newton takes over
 };
 
 enum class MinimizerTermination { kConverged, kMaxIterations, kStalled, kNumericalFailure };
@@ -54,7 +64,19 @@ struct MinimizerSummary {
   double last_step = 0.0;  // fraction of the diagonal
   double energy = 0.0;
   double factorize_ms = 0.0;
+  int lbfgs_iterations = 0;
+  int newton_fallbacks = 0;  // L-BFGS handed the frame to Newton
 };
+
+// Where a frame's time went (ms), added to by every part.
+struct MinimizerTiming {
+  double spring_ms = 0.0;       // energy, force and Hessian-block passes outside the line search
+  double solve_ms = 0.0;        // linear solves: conjugate gradients (with their Hessian products), direct solves
+  double line_search_ms = 0.0;  // energy (and force) evaluations of trial points
+  double factorize_ms = 0.0;    // numeric factorizations with their assembly
+};
+
+class LaplacianPreconditioner;
 
 // One frame's problem: its springs (rest lengths set), held coordinates and their linear algebra.
 struct MinimizerProblem {
@@ -64,6 +86,8 @@ struct MinimizerProblem {
   double diagonal_shift = 0.0;              // added to the free diagonal (a tiny one removes a null space)
   double diagonal = 1.0;                    // bounding-box diagonal: the length scale of steps
   double mean_rest_length = 1.0;
+  LaplacianPreconditioner* laplacian = nullptr;  // for the methods that use it
+  MinimizerTiming* timing = nullptr;              // never null
 };
 
 class Minimizer {
@@ -74,6 +98,8 @@ class Minimizer {
   // New options of the same type; what the minimizer learnt about the problem (a kept factor) stays.
   virtual void SetOptions(const MinimizerOptions& options) = 0;
   virtual MinimizerType type() const = 0;
+  // Forget what was learnt from earlier problems, so the next Minimize depends on its problem alone.
+  virtual void Reset() = 0;
   static std::unique_ptr<Minimizer> Create(const MinimizerOptions& options);
 };
 

@@ -6,6 +6,8 @@
 #include <chrono>
 #include <cmath>
 
+#include "laplacian.h"
+#include "lbfgs.h"
 #include "line_search.h"
 
 namespace springblend::internal {
@@ -30,6 +32,7 @@ double LongestMove(const Eigen::VectorXd& step) {
 std::unique_ptr<Minimizer> Minimizer::Create(const MinimizerOptions& options) {
   switch (options.type) {
     case MinimizerType::kInexactNewton: return std::make_unique<InexactNewton>(options);
+    case MinimizerType::kLbfgs: return std::make_unique<Lbfgs>(options);
   }
   return std::make_unique<InexactNewton>(options);
 }
@@ -56,6 +59,7 @@ bool InexactNewton::FactorizeAndSolve(const MinimizerProblem& problem, const Eig
   summary->projected_factorizations += ladder.projected;
   summary->shifted_factorizations += ladder.shifted;
   summary->factorize_ms += Elapsed(factor_start);
+  problem.timing->factorize_ms += Elapsed(factor_start);
   if (ladder.status != FactorStatus::kOk) {
     summary->message = "the Hessian could not be factorized even with a diagonal shift";
     return false;
@@ -64,7 +68,9 @@ bool InexactNewton::FactorizeAndSolve(const MinimizerProblem& problem, const Eig
   refactor_next_ = false;
   // The per-spring blocks are left as the ladder assembled them: the line search reassembles at the new
   // iterate before any matrix-free product reads them.
+  const auto solve_start = std::chrono::steady_clock::now();
   linear.Solve(springs.force(), held, &step_);
+  problem.timing->solve_ms += Elapsed(solve_start);
   if (!step_.allFinite()) {
     summary->message = "the Newton step is not finite";
     return false;
@@ -72,8 +78,9 @@ bool InexactNewton::FactorizeAndSolve(const MinimizerProblem& problem, const Eig
   return true;
 }
 
-bool InexactNewton::ConjugateGradientStep(const MinimizerProblem& problem, double forcing,
-                                          MinimizerSummary* summary) {
+ConjugateGradientsStatus InexactNewton::ConjugateGradientStep(const MinimizerProblem& problem, double forcing,
+                                                              MinimizerSummary* summary) {
+  const auto start = std::chrono::steady_clock::now();
   SpringSystem& springs = *problem.springs;
   const std::vector<char>& held = *problem.held;
   const Eigen::VectorXd& force = springs.force();  // zero on held coordinates, and so stays every vector
@@ -82,12 +89,19 @@ bool InexactNewton::ConjugateGradientStep(const MinimizerProblem& problem, doubl
   cg.floor = 0.1 * options_.residual_tolerance;  // no need to solve below the tolerance
   cg.max_iterations = options_.max_cg_iterations;
   if (!cg_ || cg_->last_direction().size() != force.size()) cg_ = std::make_unique<ConjugateGradients>(force.size());
+  const bool laplacian = options_.preconditioner == Preconditioner::kLaplacian;
   const auto status = cg_->Solve(
       [&](const Eigen::VectorXd& v, Eigen::VectorXd* out) {
         springs.HessianProduct(v, held, problem.diagonal_shift, out);
       },
-      [&](const Eigen::VectorXd& r, Eigen::VectorXd* z) { problem.linear->Solve(r, held, z); }, force, cg, &step_,
-      &summary->cg_iterations);
+      [&](const Eigen::VectorXd& r, Eigen::VectorXd* z) {
+        if (laplacian) {
+          problem.laplacian->Apply(r, held, z);
+        } else {
+          problem.linear->Solve(r, held, z);
+        }
+      },
+      force, cg, &step_, &summary->cg_iterations);
   if (status == ConjugateGradientsStatus::kNegativeCurvature && options_.follow_negative_curvature) {
     const Eigen::VectorXd& d = cg_->last_direction();
     if (d.allFinite() && std::isfinite(d.dot(d))) {
@@ -95,7 +109,28 @@ bool InexactNewton::ConjugateGradientStep(const MinimizerProblem& problem, doubl
       has_negative_direction_ = true;
     }
   }
-  return status == ConjugateGradientsStatus::kConverged;
+  problem.timing->solve_ms += Elapsed(start);
+  return status;
+}
+
+bool InexactNewton::LaplacianDirection(const MinimizerProblem& problem, const Eigen::VectorXd& x, double forcing,
+                                       MinimizerSummary* summary) {
+  SpringSystem& springs = *problem.springs;
+  const std::vector<char>& held = *problem.held;
+  const auto usable = [&](ConjugateGradientsStatus status) {
+    if (status == ConjugateGradientsStatus::kNegativeCurvature || !step_.allFinite()) return false;
+    return status == ConjugateGradientsStatus::kConverged || springs.force().dot(step_) > 0.0;  // truncated
+  };
+  if (options_.hessian != HessianChoice::kProjected && usable(ConjugateGradientStep(problem, forcing, summary))) {
+    return true;
+  }
+  if (options_.hessian == HessianChoice::kAbsolute) return false;
+  const auto start = std::chrono::steady_clock::now();
+  springs.Evaluate(x, held, CurvatureAt(0.0));
+  problem.timing->spring_ms += Elapsed(start);
+  const bool ok = usable(ConjugateGradientStep(problem, forcing, summary));
+  if (options_.hessian == HessianChoice::kTrueWithProjectedFallback) springs.Evaluate(x, held, CurvatureAt(1.0));
+  return ok;
 }
 
 bool InexactNewton::Direction(const MinimizerProblem& problem, const Eigen::VectorXd& x, double forcing,
@@ -103,16 +138,22 @@ bool InexactNewton::Direction(const MinimizerProblem& problem, const Eigen::Vect
   has_negative_direction_ = false;
   SpringSystem& springs = *problem.springs;
   const std::vector<char>& held = *problem.held;
+  if (options_.preconditioner == Preconditioner::kLaplacian && problem.laplacian != nullptr &&
+      problem.laplacian->ok()) {
+    if (LaplacianDirection(problem, x, forcing, summary)) return true;
+    return FactorizeAndSolve(problem, x, summary);
+  }
   if (options_.reuse_factorization && !refactor_next_ && problem.linear->FactorCovers(held)) {
     const int cg_before = summary->cg_iterations;
     // The per-spring blocks of the last evaluation are the true Hessian's at x (kAbsolute: its absolute
     // value; kProjected: the projected blocks are evaluated here).
     if (options_.hessian == HessianChoice::kProjected) springs.Evaluate(x, held, CurvatureAt(0.0));
-    bool ok = ConjugateGradientStep(problem, forcing, summary);
+    const auto converged = ConjugateGradientsStatus::kConverged;
+    bool ok = ConjugateGradientStep(problem, forcing, summary) == converged;
     if (!ok && options_.hessian == HessianChoice::kTrueWithProjectedFallback) {
       // Negative curvature (compressed springs) or slow progress: the projected Hessian is SPD.
       springs.Evaluate(x, held, CurvatureAt(0.0));
-      ok = ConjugateGradientStep(problem, forcing, summary);
+      ok = ConjugateGradientStep(problem, forcing, summary) == converged;
       springs.Evaluate(x, held, CurvatureAt(1.0));
     }
     if (ok && step_.allFinite()) {
@@ -134,9 +175,12 @@ void InexactNewton::Minimize(const MinimizerProblem& problem, Eigen::VectorXd* x
   trial_.resize(x.size());
   int tiny_steps = 0;
   double last_step = 0.0;  // length of the last Newton step (largest coordinate change)
+  MinimizerTiming& timing = *problem.timing;
+  auto clock = std::chrono::steady_clock::now();
   double residual = springs.Evaluate(x, held, CurvatureAt(1.0));
   if (summary->iterations == 0) summary->initial_residual = residual;
   double energy = springs.Energy(x);
+  timing.spring_ms += Elapsed(clock);
   double forcing = kMaxForcing;
   double previous_norm = 0.0;
   summary->termination = MinimizerTermination::kMaxIterations;
@@ -193,6 +237,7 @@ void InexactNewton::Minimize(const MinimizerProblem& problem, Eigen::VectorXd* x
 
     LineSearchOptions search;
     search.max_steps = options_.max_line_search_steps;
+    clock = std::chrono::steady_clock::now();
     const LineSearchResult found = BacktrackingLineSearch(
         energy, -springs.force().dot(step_), residual, search,
         [&](double t) {
@@ -201,6 +246,7 @@ void InexactNewton::Minimize(const MinimizerProblem& problem, Eigen::VectorXd* x
         },
         [&] { return springs.Evaluate(trial_, held, CurvatureAt(1.0)); });
     summary->line_search_halvings += found.halvings;
+    timing.line_search_ms += Elapsed(clock);
     if (!found.accepted) {
       springs.Evaluate(x, held, CurvatureAt(1.0));  // restore the forces of the current iterate
       if (residual <= options_.residual_tolerance) {
@@ -214,7 +260,9 @@ void InexactNewton::Minimize(const MinimizerProblem& problem, Eigen::VectorXd* x
     }
     x.swap(trial_);
     energy = found.energy;
+    clock = std::chrono::steady_clock::now();
     residual = found.residual >= 0.0 ? found.residual : springs.Evaluate(x, held, CurvatureAt(1.0));
+    timing.spring_ms += Elapsed(clock);
 
     last_step = found.step * step_.lpNorm<Eigen::Infinity>();
     summary->last_step = last_step / diagonal;

@@ -15,13 +15,22 @@ class InexactNewton final : public Minimizer {
   void Minimize(const MinimizerProblem& problem, Eigen::VectorXd* x, MinimizerSummary* summary) override;
   void SetOptions(const MinimizerOptions& options) override { options_ = options; }
   MinimizerType type() const override { return MinimizerType::kInexactNewton; }
+  void Reset() override {
+    rung_ = 0;
+    refactor_next_ = false;
+  }
 
  private:
   // The Newton direction step_ from the forces at *x. False (with the summary's message) on failure.
   bool Direction(const MinimizerProblem& problem, const Eigen::VectorXd& x, double forcing,
                  MinimizerSummary* summary);
   bool FactorizeAndSolve(const MinimizerProblem& problem, const Eigen::VectorXd& x, MinimizerSummary* summary);
-  bool ConjugateGradientStep(const MinimizerProblem& problem, double forcing, MinimizerSummary* summary);
+  ConjugateGradientsStatus ConjugateGradientStep(const MinimizerProblem& problem, double forcing,
+                                                 MinimizerSummary* summary);
+  // Newton-CG preconditioned by the Laplacian: true Hessian, then projected; a truncated (but descending)
+  // CG step is taken as it is. False when neither gives a direction.
+  bool LaplacianDirection(const MinimizerProblem& problem, const Eigen::VectorXd& x, double forcing,
+                          MinimizerSummary* summary);
   Curvature CurvatureAt(double negative_scale) const {
     return {negative_scale, options_.hessian == HessianChoice::kAbsolute};
   }

@@ -7,6 +7,7 @@
 #include <cmath>
 
 #include "rig_builder.h"
+#include "target_paths.h"
 #include "springblend/error.h"
 
 namespace springblend {
@@ -72,6 +73,8 @@ void RigOptions::Validate() const {
   in_range(radius_edge_ratio, 1.01, 100.0, "radius_edge_ratio");
   in_range(tetgen_timeout_seconds, 0.001, 86400.0, "tetgen_timeout_seconds");
   in_range(anchor_size, 3, 1000, "anchor_size");
+  in_range(path_intervals, 1, 64, "path_intervals");
+  in_range(path_extension, 0.0, 2.0, "path_extension");
   if (!(shell_thickness > 0.0 && shell_thickness <= 100.0)) {
     throw Error(ErrorCode::kInvalidInput,
                 fmt::format("rig option shell_thickness = {} is outside (0, 100]", shell_thickness));
@@ -148,6 +151,18 @@ std::shared_ptr<const Rig> RigBuilder::Build(TriangleMesh rest, std::vector<Tria
     builder.PlaceInterior();
   }
   builder.ComputeRestLengths();
+  if (options.target_paths) {
+    internal::TargetPathsReport report;
+    internals.paths = internal::BuildTargetPaths(*rig, options.path_intervals, options.path_extension, &report);
+    s.path_samples = report.samples;
+    s.unconverged_path_samples = report.unconverged;
+    s.path_ms = report.ms;
+    if (report.unconverged > 0) {
+      s.notes.push_back(fmt::format("{} of {} samples of the targets' paths did not converge; frames near them "
+                                    "start from the best found",
+                                    report.unconverged, report.samples));
+    }
+  }
   if (s.boundary_mode == BoundaryMode::kFloating) {
     s.notes.push_back(fmt::format(
         "no boundary condition and no anchor: solved in the frame of vertices {}, {}, {} (a 3-2-1 gauge that "

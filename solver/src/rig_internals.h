@@ -9,6 +9,7 @@
 #include "hessian_pattern.h"
 #include "sparse_cholesky.h"
 #include "spring_system.h"
+#include "target_paths.h"
 #include "springblend/rig.h"
 
 namespace springblend {
@@ -18,6 +19,7 @@ struct Rig::Internals {
   // The symbolic factorization, analysed once; solvers clone it and only refactor numerically.
   std::unique_ptr<internal::SparseCholesky> cholesky;
   std::vector<internal::AnchorMotion> anchor_motions;  // one per target
+  std::vector<internal::TargetPath> paths;  // one per target (RigOptions::target_paths); empty without
 };
 
 namespace internal {

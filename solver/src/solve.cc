@@ -1,6 +1,7 @@
 // The per-frame solve: blend the rest lengths, hold the frame's boundary conditions (fixed vertices, the
-// anchor's blended motion, pins, a gauge), start from the predictor, minimize, and repeat around the
-// contact active set (paper sections 3.2-3.4 and 4).
+// anchor's blended motion, pins, a gauge), start from the rig's prediction for the weights, minimize, and
+// repeat around the contact active set (paper sections 3.2-3.4 and 4). Nothing carries over from one frame
+// to the next but buffers: the kept factorization and the minimizer's state are reset per frame.
 #include "springblend/solve.h"
 
 #include <fmt/format.h>
@@ -14,7 +15,9 @@
 #include "contact_set.h"
 #include "linear_system.h"
 #include "minimizer.h"
-#include "predictor.h"
+#include "frame_conditions.h"
+#include "laplacian.h"
+#include "target_paths.h"
 #include "rig_internals.h"
 #include "rigid.h"
 #include "spring_system.h"
@@ -30,7 +33,11 @@ double Elapsed(std::chrono::steady_clock::time_point since) {
 
 internal::MinimizerOptions ToMinimizerOptions(const SolveOptions& o) {
   internal::MinimizerOptions m;
-  m.type = internal::MinimizerType::kInexactNewton;
+  m.type = o.method == SolveMethod::kLbfgs ? internal::MinimizerType::kLbfgs : internal::MinimizerType::kInexactNewton;
+  m.preconditioner = o.method == SolveMethod::kNewtonLaplacian ? internal::Preconditioner::kLaplacian
+                                                              : internal::Preconditioner::kKeptFactor;
+  m.lbfgs_history = o.lbfgs_history;
+  m.lbfgs_max_iterations = o.lbfgs_max_iterations;
   m.residual_tolerance = o.residual_tolerance;
   m.step_tolerance = o.step_tolerance;
   m.max_iterations = o.max_iterations;
@@ -72,14 +79,13 @@ class Solver::Impl {
   }
 
   SolveSummary Solve(const Frame& frame, Points* positions);
-  void Reset() { predictor_.Reset(); }
-  void SetWarmStart(const Points& all_vertices) {
-    if (all_vertices.rows() != rig_->num_vertices()) {
-      throw Error(ErrorCode::kInvalidInput,
-                  fmt::format("a warm start needs {} vertices, got {}", rig_->num_vertices(), all_vertices.rows()));
-    }
-    previous_ = all_vertices;
-    predictor_.SetStart(all_vertices);
+  // The start for these weights (stacked 3n) from the linear blend of every simulated vertex.
+  void StartOf(const Points& linear, const std::vector<double>& weights,
+               const std::optional<internal::AnchorMotion>& motion, Eigen::VectorXd* x) const {
+    const int n = static_cast<int>(linear.rows());
+    x->resize(3 * n);
+    for (int v = 0; v < n; ++v) x->segment<3>(3 * v) = linear.row(v).transpose();
+    if (options_.use_target_paths) internal::AddPathCorrections(rig_->internals().paths, weights, motion, x);
   }
   const Points& all_positions() const { return previous_; }
   void SetColliders(std::vector<Collider> colliders) {
@@ -105,12 +111,30 @@ class Solver::Impl {
   SolveOptions options_;
 
  private:
-  // Boundary conditions of this frame: fixed vertices follow the linear blend, the anchor its blended rigid
-  // motion, pins their positions.
-  std::vector<std::pair<int, Eigen::Vector3d>> HeldVertices(const Frame& frame, const Points& linear,
-                                                            std::optional<internal::AnchorMotion>* motion) const;
+  // The Laplacian of the rest stiffness, with the always-held vertices eliminated; built on first use.
+  internal::LaplacianPreconditioner* Laplacian() {
+    if (options_.method == SolveMethod::kNewton) return nullptr;
+    if (!laplacian_) {
+      const Rig& rig = *rig_;
+      std::vector<double> rest_lengths;
+      internal::BlendRestLengths(rig, std::vector<double>(rig.num_targets(), 0.0), &rest_lengths);
+      internal::SpringSystem rest(internal::TopologyOf(rig));
+      rest.SetRestLengths(std::move(rest_lengths), rig.spring_kind(), internal::KindStiffness(rig.options()),
+                          internal::StiffnessFloor(rig));
+      std::vector<int> always = rig.fixed_vertices();
+      if (rig.boundary_mode() == BoundaryMode::kAnchored) {
+        always.insert(always.end(), rig.anchor_vertices().begin(), rig.anchor_vertices().end());
+      }
+      laplacian_ = std::make_unique<internal::LaplacianPreconditioner>(internal::TopologyOf(rig), rest.stiffness(),
+                                                                        always, rig.options().linear_solver);
+    }
+    return laplacian_.get();
+  }
+
   void Minimize(double diagonal_shift, internal::MinimizerSummary* summary) {
     internal::MinimizerProblem problem;
+    problem.laplacian = Laplacian();
+    problem.timing = &timing_;
     problem.springs = &springs_;
     problem.linear = &linear_;
     problem.held = &held_;
@@ -123,28 +147,14 @@ class Solver::Impl {
   internal::SpringSystem springs_;
   internal::LinearSystem linear_;
   std::unique_ptr<internal::Minimizer> minimizer_;
-  internal::Predictor predictor_;
+  std::unique_ptr<internal::LaplacianPreconditioner> laplacian_;
+  internal::MinimizerTiming timing_;
   internal::ContactSet contacts_;
   std::vector<Collider> colliders_;
   std::vector<char> held_, base_held_;  // held coordinates of this frame, and before contacts
   Eigen::VectorXd x_;
   Points previous_;  // the last solution (all_positions)
 };
-
-std::vector<std::pair<int, Eigen::Vector3d>> Solver::Impl::HeldVertices(
-    const Frame& frame, const Points& linear, std::optional<internal::AnchorMotion>* motion) const {
-  const Rig& rig = *rig_;
-  std::vector<std::pair<int, Eigen::Vector3d>> held;
-  for (int v : rig.fixed_vertices()) held.emplace_back(v, linear.row(v).transpose());
-  if (rig.boundary_mode() == BoundaryMode::kAnchored) {
-    *motion = internal::BlendAnchorMotions(rig.internals().anchor_motions, frame.weights);
-    for (int v : rig.anchor_vertices()) {
-      held.emplace_back(v, (*motion)->Apply(rig.shape(0).row(v).transpose(), rig.anchor_centroid()));
-    }
-  }
-  for (const Pin& pin : frame.pins) held.emplace_back(pin.vertex, pin.position);
-  return held;
-}
 
 SolveSummary Solver::Impl::Solve(const Frame& frame, Points* positions) {
   const auto start = std::chrono::steady_clock::now();
@@ -167,41 +177,28 @@ SolveSummary Solver::Impl::Solve(const Frame& frame, Points* positions) {
   springs_.SetRestLengths(std::move(rest_lengths), rig.spring_kind(), internal::KindStiffness(rig.options()),
                           internal::StiffnessFloor(rig));
 
-  std::optional<internal::AnchorMotion> motion;
-  const auto held = HeldVertices(frame, linear, &motion);
-  std::vector<Eigen::Vector3d> held_points;
-  for (const auto& h : held) held_points.push_back(h.second);
-  BoundaryMode mode = rig.boundary_mode();
-  if (mode != BoundaryMode::kAnchored && mode != BoundaryMode::kFixedVertices) {
-    mode = internal::SpansRigidly(held_points, diagonal) ? BoundaryMode::kFixedVertices
-           : held.empty()                                ? BoundaryMode::kFloating
-                                                         : BoundaryMode::kPartiallyFixed;
+  std::vector<std::pair<int, Eigen::Vector3d>> pins;
+  for (const Pin& pin : frame.pins) pins.emplace_back(pin.vertex, pin.position);
+  const internal::FrameConditions conditions = internal::ConditionsOf(rig, frame.weights, linear, pins);
+  const BoundaryMode mode = conditions.mode;
+  StartOf(linear, frame.weights, conditions.motion, &x_);
+  if (!internal::HoldConditions(rig, conditions, &x_, &held_)) {
+    summary.termination = Termination::kNumericalFailure;
+    summary.message = "the gauge vertices became collinear in the start configuration";
+    summary.solve_ms = Elapsed(start);
+    return summary;
   }
-  if (options_.warm_start) {
-    predictor_.Predict(linear, motion, rig.anchor_centroid(), frame.weights, held, options_.extrapolate,
-                       [&](const Eigen::VectorXd& x) { return springs_.Energy(x); }, &x_);
-  } else {
-    x_.resize(3 * n);
-    for (int v = 0; v < n; ++v) x_.segment<3>(3 * v) = linear.row(v).transpose();
+  {
+    std::vector<int> vertices;
+    for (const auto& h : conditions.held) vertices.push_back(h.first);
+    std::sort(vertices.begin(), vertices.end());
+    summary.fixed_vertices = static_cast<int>(std::unique(vertices.begin(), vertices.end()) - vertices.begin());
   }
-  std::fill(held_.begin(), held_.end(), 0);
-  for (const auto& [v, p] : held) {
-    x_.segment<3>(3 * v) = p;
-    held_[3 * v] = held_[3 * v + 1] = held_[3 * v + 2] = 1;
-  }
-  summary.fixed_vertices = static_cast<int>(std::count(held_.begin(), held_.end(), 1) / 3);
-  double diagonal_shift = 0.0;
-  if (mode == BoundaryMode::kFloating) {
-    // 3-2-1 gauge: any configuration can be moved so, hence it removes the rigid motions without a force.
-    if (!internal::HoldGauge(rig.gauge_vertices(), &x_, &held_)) {
-      summary.termination = Termination::kNumericalFailure;
-      summary.message = "the gauge vertices became collinear in the start configuration";
-      summary.solve_ms = Elapsed(start);
-      return summary;
-    }
-  } else if (mode == BoundaryMode::kPartiallyFixed) {
-    diagonal_shift = 1e-8 / rig.summary().mean_rest_length;
-  }
+  const double diagonal_shift = conditions.diagonal_shift;
+  // Nothing learnt from an earlier frame may change this one.
+  linear_.DropFactor();
+  minimizer_->Reset();
+  timing_ = {};
 
   base_held_ = held_;
   contacts_.Clear();
@@ -246,6 +243,11 @@ SolveSummary Solver::Impl::Solve(const Frame& frame, Points* positions) {
   summary.last_step = minimized.last_step;
   summary.energy = minimized.energy;
   summary.factorize_ms = minimized.factorize_ms;
+  summary.lbfgs_iterations = minimized.lbfgs_iterations;
+  summary.newton_fallbacks = minimized.newton_fallbacks;
+  summary.spring_ms = timing_.spring_ms;
+  summary.linear_solve_ms = timing_.solve_ms;
+  summary.line_search_ms = timing_.line_search_ms;
 
   summary.inverted_tetrahedra = internal::CountInvertedTetrahedra(rig.tetrahedra(), x_);
   Points solved(n, 3);
@@ -253,13 +255,7 @@ SolveSummary Solver::Impl::Solve(const Frame& frame, Points* positions) {
   if (mode == BoundaryMode::kFloating) {
     internal::AlignRigidly(linear.topRows(rig.num_surface_vertices()), &solved);
   }
-  if (summary.termination != Termination::kNumericalFailure) {
-    // A frame that did not converge is a warm start, but no node for the predictor.
-    predictor_.Add(solved, motion, frame.weights, summary.converged());
-    previous_ = solved;
-  } else {
-    predictor_.Reset();  // never warm-start from a broken state
-  }
+  previous_ = solved;
   *positions = solved.topRows(rig.num_surface_vertices());
   if (summary.termination == Termination::kConverged) summary.message = "converged";
   summary.solve_ms = Elapsed(start);
@@ -273,8 +269,19 @@ Solver::Solver(Solver&&) noexcept = default;
 Solver& Solver::operator=(Solver&&) noexcept = default;
 
 SolveSummary Solver::Solve(const Frame& frame, Points* positions) { return impl_->Solve(frame, positions); }
-void Solver::Reset() { impl_->Reset(); }
-void Solver::SetWarmStart(const Points& all_vertices) { impl_->SetWarmStart(all_vertices); }
+Points Solver::Start(const std::vector<double>& weights) const {
+  const Rig& rig = *impl_->rig_;
+  const Points linear = LinearBlendAll(rig, weights);
+  std::optional<internal::AnchorMotion> motion;
+  if (rig.boundary_mode() == BoundaryMode::kAnchored) {
+    motion = internal::BlendAnchorMotions(rig.internals().anchor_motions, weights);
+  }
+  Eigen::VectorXd x;
+  impl_->StartOf(linear, weights, motion, &x);
+  Points start(rig.num_vertices(), 3);
+  for (int v = 0; v < rig.num_vertices(); ++v) start.row(v) = x.segment<3>(3 * v).transpose();
+  return start;
+}
 void Solver::SetColliders(std::vector<Collider> colliders) { impl_->SetColliders(std::move(colliders)); }
 const Points& Solver::all_positions() const { return impl_->all_positions(); }
 const Rig& Solver::rig() const { return *impl_->rig_; }

@@ -51,17 +51,18 @@ double SpringSystem::Energy(const Eigen::VectorXd& x) const {
       [](double l, double r) { return l + r; });
 }
 
-double SpringSystem::Evaluate(const Eigen::VectorXd& x, const std::vector<char>& held, const Curvature& curvature) {
-  return Run(x, held, curvature, 0.0, nullptr);
+double SpringSystem::Evaluate(const Eigen::VectorXd& x, const std::vector<char>& held, const Curvature& curvature,
+                              bool blocks) {
+  return Run(x, held, curvature, 0.0, nullptr, blocks);
 }
 
 double SpringSystem::Assemble(const Eigen::VectorXd& x, const std::vector<char>& held, const Curvature& curvature,
                               double diagonal_shift, std::vector<double>* values) {
-  return Run(x, held, curvature, diagonal_shift, values);
+  return Run(x, held, curvature, diagonal_shift, values, true);
 }
 
 double SpringSystem::Run(const Eigen::VectorXd& x, const std::vector<char>& held, const Curvature& curvature,
-                         double shift, std::vector<double>* values_out) {
+                         double shift, std::vector<double>* values_out, bool blocks) {
   const bool hessian = values_out != nullptr;
   const int m = topology_.springs();
   const int n = topology_.vertices;
@@ -82,6 +83,17 @@ double SpringSystem::Run(const Eigen::VectorXd& x, const std::vector<char>& held
       double* hq = &spring_hessian_[6 * static_cast<size_t>(q)];
       double* fq = &spring_force_[3 * static_cast<size_t>(q)];
       Eigen::Matrix3d h;
+      if (!blocks) {
+        if (l <= tiny) {
+          fq[0] = fq[1] = fq[2] = 0.0;
+        } else {
+          const double scale = -k * (l - rest_length_[q]) / l;
+          fq[0] = scale * d[0];
+          fq[1] = scale * d[1];
+          fq[2] = scale * d[2];
+        }
+        continue;
+      }
       if (l <= tiny) {
         // Coincident endpoints: no direction to push along; a plain spring-like stiffness keeps H SPD.
         fq[0] = fq[1] = fq[2] = 0.0;
@@ -121,9 +133,11 @@ double SpringSystem::Run(const Eigen::VectorXd& x, const std::vector<char>& held
           for (int e = offsets[v]; e < offsets[v + 1]; ++e) {
             const int q = incident[e];
             const double sign = a[q] == v ? 1.0 : -1.0;
-            const double* hq = &spring_hessian_[6 * static_cast<size_t>(q)];
             const double* fq = &spring_force_[3 * static_cast<size_t>(q)];
-            for (int i = 0; i < 6; ++i) h[i] += hq[i];
+            if (hessian) {
+              const double* hq = &spring_hessian_[6 * static_cast<size_t>(q)];
+              for (int i = 0; i < 6; ++i) h[i] += hq[i];
+            }
             for (int i = 0; i < 3; ++i) f[i] += sign * fq[i];
           }
           for (int c = 0; c < 3; ++c) {

@@ -43,7 +43,9 @@ class SpringSystem {
   double Energy(const Eigen::VectorXd& x) const;
   // Forces at x (force(): zero on held coordinates; reaction(): every coordinate) and the per-spring
   // Hessian blocks. Returns the largest force on a free coordinate.
-  double Evaluate(const Eigen::VectorXd& x, const std::vector<char>& held, const Curvature& curvature);
+  // blocks = false skips the Hessian blocks (a first-order method needs only the forces).
+  double Evaluate(const Eigen::VectorXd& x, const std::vector<char>& held, const Curvature& curvature,
+                  bool blocks = true);
   // The same, and the Hessian's values in the pattern's layout, with `diagonal_shift` added on the free
   // diagonal and identity rows and columns for held coordinates.
   double Assemble(const Eigen::VectorXd& x, const std::vector<char>& held, const Curvature& curvature,
@@ -61,7 +63,7 @@ class SpringSystem {
 
  private:
   double Run(const Eigen::VectorXd& x, const std::vector<char>& held, const Curvature& curvature, double shift,
-             std::vector<double>* values);
+             std::vector<double>* values, bool blocks);
 
   SpringTopology topology_;
   double tiny_length_ = 0.0;

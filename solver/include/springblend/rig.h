@@ -77,6 +77,16 @@ struct RigOptions {
   // stitched to the head it belongs to.
   bool hold_outer_rim = false;
 
+  // Stateless frames: solve each target's own path alpha * target for alpha from -path_extension to
+  // 1 + path_extension, path_intervals samples per unit, by continuation from the rest shape (the paper's
+  // sweep), and keep the physical corrections. Every frame then starts from the linear blend plus each
+  // target's correction at its weight: a single-target frame lands on the sweep's branch, every frame
+  // starts close to its answer, and no frame depends on another. Costs (targets x samples) solves at build,
+  // run in parallel over the targets. Range: intervals [1, 64], extension [0, 2].
+  bool target_paths = true;
+  int path_intervals = 8;
+  double path_extension = 0.25;
+
   // Throws Error(kInvalidInput) naming the field that is out of range.
   void Validate() const;
 };
@@ -120,6 +130,9 @@ struct RigSummary {
   double bounding_box_diagonal = 0.0;
   double mean_rest_length = 0.0;
   std::int64_t hessian_nonzeros = 0;  // stored entries of the upper triangle
+  int path_samples = 0;              // equilibria solved along the targets' paths
+  int unconverged_path_samples = 0;  // of those, the ones that did not converge (best found kept)
+  double path_ms = 0.0;              // time spent on the paths (part of precompute_ms)
   double precompute_ms = 0.0;
   std::vector<std::string> notes;  // decisions taken while building, in words
 };

@@ -1,6 +1,9 @@
 // The per-frame solve: blend the rest lengths with a weight vector and find the equilibrium of the
-// blended mass-spring system by Newton's method (paper sections 3.2-3.3). A Solver holds the state one
-// thread reuses from frame to frame: the current positions (the warm start) and the numeric factorization.
+// blended mass-spring system by Newton's method (paper sections 3.2-3.3). A frame's answer is a function of
+// the rig and that frame alone (weights, pins, colliders and their motion, options): every solve starts from
+// the rig's deterministic prediction for its weights (the linear blend plus each target's precomputed
+// physical correction, see RigOptions::target_paths), never from an earlier frame. A Solver only keeps
+// buffers between frames, which make no frame different.
 #pragma once
 
 #include <chrono>
@@ -37,7 +40,26 @@ enum class HessianMode {
 };
 const char* ToString(HessianMode mode);
 
+// How a frame's equilibrium is found (all reach the same equilibrium from the same start, to the tolerances).
+enum class SolveMethod {
+  // Inexact Newton: conjugate gradients preconditioned by a 3n x 3n factorization of the Hessian, kept
+  // across the frame's Newton iterations and refactored when it stops paying off.
+  kNewton,
+  // Newton-CG preconditioned by the scalar n x n Laplacian of the rest stiffness (a ninth of the factor,
+  // factorized once per solver); falls back to a 3n factorization only when CG finds no direction.
+  kNewtonLaplacian,
+  // L-BFGS with the Laplacian as its initial Hessian (Liu et al. 2017), finished by inexact Newton on a
+  // stall or after lbfgs_max_iterations.
+  kLbfgs,
+};
+const char* ToString(SolveMethod method);
+SolveMethod SolveMethodFromString(const std::string& name);  // "newton" | "newton-laplacian" | "lbfgs"
+
 struct SolveOptions {
+  SolveMethod method = SolveMethod::kNewton;
+  // kLbfgs: (s, y) pairs kept [1, 100], and iterations before Newton takes over [1, 10000].
+  int lbfgs_history = 10;
+  int lbfgs_max_iterations = 100;
   // Converged when the largest force on any free degree of freedom is at most this. Forces are in units of
   // strain (k = 1 / rest length), so the tolerance does not depend on the mesh's scale. Range (0, 1).
   double residual_tolerance = 1e-6;
@@ -70,13 +92,10 @@ struct SolveOptions {
   // No vertex moves further than this fraction of the mean rest length in one Newton step, so a step
   // cannot carry a vertex through its neighbours into an inverted equilibrium. Range (0, 1000].
   double max_step_fraction = 2.0;
-  // Start each frame from the previous frame's solution (the paper's protocol). When false, or for the
-  // first frame, the solve starts from the linear blendshape.
-  bool warm_start = true;
-  // With warm_start: when the weights keep moving in the direction of the two previous frames (a sweep, a
-  // dragged slider), extrapolate the start along the previous solutions' motion: the polynomial through the
-  // last two or three (secant or quadratic predictor), or a lower order where that starts with less energy.
-  bool extrapolate = true;
+  // Start from the rig's target paths (the linear blend plus each target's physical correction at its
+  // weight). false: from the linear blendshape alone (slower, and a frame may land on another equilibrium
+  // where thin parts can buckle either way). Either way the answer depends on the frame alone.
+  bool use_target_paths = true;
   // Contact rounds per frame (solve, catch penetrating vertices, solve again) before giving up. [1, 1000]
   int max_contact_rounds = 30;
   // Contact vertices are held this fraction of the diagonal outside the obstacle's surface. [0, 0.01]
@@ -115,7 +134,14 @@ struct SolveSummary {
   int contacts = 0;        // mesh vertices held on an obstacle's surface at the end of the frame
   int contact_rounds = 0;  // extra solves the contacts took
   int inverted_tetrahedra = 0;  // tetrahedra turned inside out in the solution (paper section 5's limit)
+  int lbfgs_iterations = 0;  // kLbfgs: its own iterations (newton_iterations counts them too)
+  int newton_fallbacks = 0;  // kLbfgs: 1 when Newton finished the frame
   double solve_ms = 0.0;
+  // Where solve_ms went: spring passes (energy, forces, Hessian blocks), linear solves (conjugate gradients
+  // with their Hessian products and preconditioner, direct solves), line searches, factorizations.
+  double spring_ms = 0.0;
+  double linear_solve_ms = 0.0;
+  double line_search_ms = 0.0;
   double factorize_ms = 0.0;
 
   bool converged() const {
@@ -147,10 +173,8 @@ class Solver {
   // throws Error; a solve that does not converge returns a summary that says why.
   SolveSummary Solve(const Frame& frame, Points* positions);
 
-  // Forget the warm start: the next frame starts from the linear blendshape.
-  void Reset();
-  // Start the next frame from these positions of every simulated vertex (#rig vertices by 3).
-  void SetWarmStart(const Points& all_vertices);
+  // Where a frame with these weights starts (#rig vertices by 3, before its held vertices are placed).
+  Points Start(const std::vector<double>& weights) const;
   // The obstacles of the following frames (paper section 4); each frame may move them.
   void SetColliders(std::vector<Collider> colliders);
   // The last solution including cap and interior vertices (#rig vertices by 3); empty before a solve.
@@ -166,7 +190,7 @@ class Solver {
 };
 
 // The paper's protocol: weights(alpha) for alpha = i / (steps - 1), i = 0..steps-1 (so the sequence starts
-// at the rest shape and ends at `end`). Each frame's weights are alpha * end.
+// at the rest shape and ends at `end`). Each frame's weights are alpha * end; each frame is solved alone.
 std::vector<Frame> SweepFrames(const std::vector<double>& end, int steps);
 
 }  // namespace springblend
