@@ -99,13 +99,6 @@ bool SendIntersections(tetgenio* in, char* switches, int fd) {
   return WriteAll(fd, &header, sizeof(header)) && WriteAll(fd, pairs.data(), sizeof(pairs[0]) * pairs.size());
 }
 
-// Dies with the parent (a SIGKILL when it goes), and only for the parent named in the request: if it died
-// between the spawn and the prctl, this process already belongs to someone else and must not run.
-bool TieToParent(std::int64_t parent) {
-  if (prctl(PR_SET_PDEATHSIG, SIGKILL) != 0) return false;
-  return static_cast<std::int64_t>(getppid()) == parent;
-}
-
 // The soft limit sends SIGXCPU, the hard one a second later SIGKILL.
 void LimitCpu(std::int64_t seconds) {
   if (seconds <= 0) return;
@@ -115,6 +108,9 @@ void LimitCpu(std::int64_t seconds) {
 
 // Reads the request, runs TetGen, sends the message; returns the exit code.
 int Serve() {
+  // Die with the parent (a SIGKILL when it goes), first thing; and serve only the parent the request names: if
+  // it died between the spawn and the prctl, this process already belongs to someone else and must not run.
+  if (prctl(PR_SET_PDEATHSIG, SIGKILL) != 0) return 3;
   Request request{};
   if (!ReadAllAt(kRequestFd, &request, sizeof(request), 0) || request.magic != kRequestMagic ||
       request.switches_bytes < 0 || request.switches_bytes > 256 || request.points < 0 || request.faces < 0 ||
@@ -122,7 +118,7 @@ int Serve() {
       request.faces > std::numeric_limits<std::int32_t>::max()) {
     return 2;
   }
-  if (!TieToParent(request.parent)) return 3;
+  if (static_cast<std::int64_t>(getppid()) != request.parent) return 3;
   LimitCpu(request.cpu_seconds);
   if (request.task == Task::kHold) {
     for (;;) pause();
