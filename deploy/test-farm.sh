@@ -111,6 +111,8 @@ rm -rf "$farm"
 mkdir -p "$farm/cache" "$farm/out" "$farm/local"
 chmod 0777 "$farm/cache"   # the image runs as uid 10001; root-made files stay readable by it
 cp "$client" "$farm/springblend"   # a private copy: a rebuild of build/release cannot swap it mid-test
+# with the solver's TetGen helper beside it, where `springblend blend` looks first
+cp "$repo/build/release/libexec/springblend/springblend-tetgen" "$farm/springblend-tetgen"
 client="$farm/springblend"
 # Without systemd (CI containers) podman logs an error per container about the health-check timer; the image's
 # HEALTHCHECK still runs on demand (`podman healthcheck run`, checked below). Those lines go to podman.log.

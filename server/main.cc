@@ -24,12 +24,14 @@
 #include "solver_pool.h"
 #include "springblend/error.h"
 #include "springblend/runtime.h"
+#include "springblend/version.h"
 
 int main(int argc, char** argv) {
   springblend::ConfigureNumericalThreads(argv);
   using namespace springblend::server;
 
   CLI::App app{"springblend-server: caches characters' spring structures and streams solved blendshapes"};
+  app.set_version_flag("--version", std::string("springblend-server ") + SPRINGBLEND_VERSION);
   std::string listen = "127.0.0.1:50051";
   std::string cache_dir;
   int workers = static_cast<int>(std::max(1u, std::thread::hardware_concurrency()));
@@ -149,10 +151,12 @@ int main(int argc, char** argv) {
       health = std::make_unique<HealthEndpoint>(health_listen);
       const std::string health_host = health_listen.substr(0, health_listen.rfind(':'));
       std::cout << "springblend-server health on " << health_host << ":" << health->port() << std::endl;
-      spdlog::info("health (grpc.health.v1.Health only, plaintext) on {}:{}", health_host, health->port());
+      spdlog::info("springblend-server {}: health (grpc.health.v1.Health only, plaintext) on {}:{}",
+                   SPRINGBLEND_VERSION, health_host, health->port());
     }
     std::cout << "springblend-server listening on " << host << ":" << port << std::endl;
-    spdlog::info("listening on {}:{} with {} solver threads, cache {}", host, port, workers, cache_dir);
+    spdlog::info("springblend-server {} listening on {}:{} with {} solver threads, cache {}", SPRINGBLEND_VERSION, host,
+                 port, workers, cache_dir);
     spdlog::info("transport: {}; {}", tls.cert_file.empty()         ? "plaintext"
                                       : tls.client_ca_file.empty() ? "TLS"
                                                                    : "mutual TLS",

@@ -10,6 +10,7 @@
 #include <fmt/format.h>
 
 #include "springblend/error.h"
+#include "springblend/version.h"
 
 namespace springblend::server {
 
@@ -49,7 +50,11 @@ void Metrics::CountFrame(double solve_seconds, int newton_iterations, bool conve
 }
 
 std::string Metrics::Render(const std::function<std::string()>& extra) const {
-  std::string out = "# HELP springblend_requests_total gRPC calls by method and status code.\n"
+  std::string out = fmt::format(
+      "# HELP springblend_build_info The running springblend version.\n# TYPE springblend_build_info gauge\n"
+      "springblend_build_info{{version=\"{}\"}} 1\n",
+      SPRINGBLEND_VERSION);
+  out += "# HELP springblend_requests_total gRPC calls by method and status code.\n"
                     "# TYPE springblend_requests_total counter\n";
   {
     std::lock_guard lock(mutex_);

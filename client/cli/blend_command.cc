@@ -12,7 +12,7 @@
 
 #include "commands.h"
 #include "scene.h"
-#include "springblend/collider.h"
+#include "collider_syntax.h"
 #include "springblend/error.h"
 #include "springblend/mesh.h"
 #include "springblend/rig.h"

@@ -8,12 +8,14 @@
 #include "commands.h"
 #include "springblend/error.h"
 #include "springblend/runtime.h"
+#include "springblend/version.h"
 
 int main(int argc, char** argv) {
   using namespace springblend;
   ConfigureNumericalThreads(argv);
   CLI::App app{"springblend: physically based blendshapes (rest-length interpolation of a mass-spring system)"};
   app.require_subcommand(1);
+  app.set_version_flag("--version", std::string("springblend ") + SPRINGBLEND_VERSION);
   int threads = 0;
   app.add_option("--threads", threads, "worker threads for assembly (0: all cores)")->check(CLI::Range(0, 1024));
   cli::Runner blend = cli::AddBlendCommand(app);

@@ -14,7 +14,7 @@
 #include "commands.h"
 #include "scene.h"
 #include "springblend/client.h"
-#include "springblend/collider.h"
+#include "collider_syntax.h"
 #include "springblend/error.h"
 
 namespace springblend::cli {

@@ -87,6 +87,7 @@ Interior BuildInterior(const Points& rest, const Faces& faces, const Tetrahedral
     interior.vertices = std::move(tet.vertices);
     interior.tets = std::move(tet.tets);
   } catch (const Error& e) {
+    if (e.code() == ErrorCode::kInternal) throw;  // e.g. no TetGen helper installed: not the surface's fault
     interior.reason = fmt::format("{}{}: surface springs only",
                                   interior.cap_loops.empty() ? "" :
                                   fmt::format("after capping {} holes, ", interior.cap_loops.size()),

@@ -1,46 +1,32 @@
-// TetGen 1.5 ends a failed run by throwing an int (or, built without TETLIBRARY, by exit()), can crash or loop
-// forever on bad input, and prints to stdout. So it never runs in the caller's process: a child process (this
-// same executable, spawned and exec'd, see "The child" below) runs it and sends the result back through a pipe
-// as raw arrays; the parent reads it under a deadline, reaps the child and turns every way the child can end
-// into an Error.
+// Tetrahedralize: the checks before TetGen runs, the switches, and what its helper's answer means. TetGen itself
+// runs in the helper process (tetgen_helper.cc), started and read by tetgen_process.cc.
 #include "tetrahedralize.h"
 
 #include <Eigen/Geometry>
-#include <fcntl.h>
 #include <fmt/format.h>
-#include <poll.h>
-#include <signal.h>
-#include <spawn.h>
-#include <sys/mman.h>
 #include <sys/wait.h>
-#include <tetgen.h>
-#include <unistd.h>
 
 #include <algorithm>
 #include <array>
-#include <cerrno>
 #include <chrono>
 #include <cmath>
 #include <cstdint>
-#include <cstdio>
-#include <cstdlib>
 #include <cstring>
-#include <limits>
-#include <new>
 #include <numeric>
 #include <optional>
 #include <string>
-#include <system_error>
 #include <tuple>
 #include <utility>
 #include <vector>
 
 #include "springblend/error.h"
+#include "tetgen_process.h"
 
 namespace springblend::internal {
 namespace {
 
-using Clock = std::chrono::steady_clock;
+using tetgen::Clock;
+using tetgen::MessageKind;
 using Triangle = std::array<int, 3>;
 
 // Why a surface cannot be tetrahedralized; `what` completes "cannot tetrahedralize the surface: ".
@@ -178,410 +164,13 @@ void CheckSurface(const Points& vertices, const Faces& faces) {
   }
 }
 
-// ---------------------------------------------------------------------------------------------------------
-// What the child sends back: a header, then raw arrays in the parent's own layout (same machine, same binary).
-
-enum class MessageKind : std::int32_t {
-  kMesh,              // points = output vertices, count = tets; then points x 3 doubles, count x 4 int32
-  kTetGenError,       // TetGen threw error_code
-  kOutOfMemory,       // std::bad_alloc
-  kUnknownException,  // anything else thrown
-  kIntersections,     // the -d check: count distinct pairs of intersecting faces; then count x 2 int32
-};
-
-struct MessageHeader {
-  MessageKind kind;
-  std::int32_t error_code;
-  std::int64_t points;
-  std::int64_t count;
-};
-
-// Bytes after the header, or -1 for a header that cannot be ours.
-std::int64_t PayloadBytes(const MessageHeader& header) {
-  constexpr std::int64_t kMaxCount = std::numeric_limits<std::int32_t>::max();
-  if (header.points < 0 || header.count < 0 || header.points > kMaxCount || header.count > kMaxCount) return -1;
-  switch (header.kind) {
-    case MessageKind::kMesh:
-      return header.points * 3 * static_cast<std::int64_t>(sizeof(double)) +
-             header.count * 4 * static_cast<std::int64_t>(sizeof(std::int32_t));
-    case MessageKind::kIntersections:
-      return header.count * 2 * static_cast<std::int64_t>(sizeof(std::int32_t));
-    case MessageKind::kTetGenError:
-    case MessageKind::kOutOfMemory:
-    case MessageKind::kUnknownException:
-      return 0;
-  }
-  return -1;
-}
-
-// ---------------------------------------------------------------------------------------------------------
-// The child. A fork of a multithreaded process may only call async-signal-safe functions until it execs: any
-// lock another thread held at the fork (the allocator's, a stdio stream's) stays locked in the copy. (glibc's
-// malloc survives it, sanitizer allocators and many others do not: a forked child running TetGen under ASan
-// hung now and then.) So the child is a fresh image of this same executable, started by posix_spawn; a
-// constructor in this file sees the variable below before main() runs, runs TetGen and exits. Any program that
-// calls Tetrahedralize links this file, so its own executable can always serve as the child.
-
-constexpr const char* kChildVariable = "SPRINGBLEND_TETGEN_CHILD";
-constexpr const char* kChildRole = "request=3,result=4";
-constexpr int kRequestFd = 3;  // a memfd holding the request, read from offset 0
-constexpr int kResultFd = 4;   // the write end of the result pipe
-
-// What the parent sends: this header, the switches, the points (row-major doubles), the faces (row-major int32).
-struct Request {
-  std::uint64_t magic;
-  std::int32_t diagnose;
-  std::int32_t switches_bytes;
-  std::int64_t points;
-  std::int64_t faces;
-};
-constexpr std::uint64_t kRequestMagic = 0x7370626c74657431ULL;  // "spbltet1"
-
-bool WriteAll(int fd, const void* data, size_t size) {
-  const char* bytes = static_cast<const char*>(data);
-  while (size > 0) {
-    const ssize_t written = write(fd, bytes, size);
-    if (written < 0) {
-      if (errno == EINTR) continue;
-      return false;
-    }
-    bytes += written;
-    size -= static_cast<size_t>(written);
-  }
-  return true;
-}
-
-bool ReadAllAt(int fd, void* data, size_t size, off_t offset) {
-  char* bytes = static_cast<char*>(data);
-  while (size > 0) {
-    const ssize_t got = pread(fd, bytes, size, offset);
-    if (got < 0 && errno == EINTR) continue;
-    if (got <= 0) return false;
-    bytes += got;
-    size -= static_cast<size_t>(got);
-    offset += got;
-  }
-  return true;
-}
-
-bool SendHeader(int fd, MessageKind kind, std::int32_t error_code = 0) {
-  const MessageHeader header{kind, error_code, 0, 0};
-  return WriteAll(fd, &header, sizeof(header));
-}
-
-// tetgenio frees its arrays with delete[], so they are allocated with new[].
-void FillTetGenInput(const std::vector<double>& points, const std::vector<std::int32_t>& faces, tetgenio* in) {
-  in->firstnumber = 0;
-  in->numberofpoints = static_cast<int>(points.size() / 3);
-  in->pointlist = new REAL[points.size()];
-  std::copy(points.begin(), points.end(), in->pointlist);
-  const int face_count = static_cast<int>(faces.size() / 3);
-  in->facetlist = new tetgenio::facet[static_cast<size_t>(face_count)];
-  in->numberoffacets = face_count;
-  for (int f = 0; f < face_count; ++f) tetgenio::init(&in->facetlist[f]);
-  // Markers number the faces from 1 (0 reads as "no marker"), so that the -d report names them.
-  in->facetmarkerlist = new int[static_cast<size_t>(face_count)];
-  for (int f = 0; f < face_count; ++f) {
-    tetgenio::facet& facet = in->facetlist[f];
-    facet.polygonlist = new tetgenio::polygon[1];
-    tetgenio::init(&facet.polygonlist[0]);
-    facet.numberofpolygons = 1;
-    const size_t first = 3 * static_cast<size_t>(f);
-    facet.polygonlist[0].vertexlist = new int[3]{faces[first], faces[first + 1], faces[first + 2]};
-    facet.polygonlist[0].numberofvertices = 3;
-    in->facetmarkerlist[f] = f + 1;
-  }
-}
-
-bool SendMesh(tetgenio* in, char* switches, int fd) {
-  tetgenio out;
-  tetrahedralize(switches, in, &out);
-  static_assert(sizeof(int) == sizeof(std::int32_t));
-  const MessageHeader header{MessageKind::kMesh, 0, out.numberofpoints, out.numberoftetrahedra};
-  return WriteAll(fd, &header, sizeof(header)) &&
-         WriteAll(fd, out.pointlist, sizeof(double) * 3 * static_cast<size_t>(out.numberofpoints)) &&
-         WriteAll(fd, out.tetrahedronlist, sizeof(int) * 4 * static_cast<size_t>(out.numberoftetrahedra));
-}
-
-// TetGen -d prints each intersecting pair as "  Facet #a intersects facet #b ..." (or "duplicates"), with the
-// facet markers, and may find a pair more than once. Returns the distinct pairs as 0-based face indices.
-std::vector<std::array<std::int32_t, 2>> ParseIntersections(const std::string& log) {
-  std::vector<std::array<std::int32_t, 2>> pairs;
-  for (size_t begin = 0; begin < log.size();) {
-    const size_t end = std::min(log.find('\n', begin), log.size());
-    const std::string line = log.substr(begin, end - begin);
-    begin = end + 1;
-    int a = 0, b = 0;
-    char verb[16] = {};
-    if (std::sscanf(line.c_str(), " Facet #%d %15s facet #%d", &a, verb, &b) == 3 &&
-        (std::strcmp(verb, "intersects") == 0 || std::strcmp(verb, "duplicates") == 0)) {
-      pairs.push_back({std::min(a, b) - 1, std::max(a, b) - 1});
-    }
-  }
-  std::sort(pairs.begin(), pairs.end());
-  pairs.erase(std::unique(pairs.begin(), pairs.end()), pairs.end());
-  return pairs;
-}
-
-bool SendIntersections(tetgenio* in, char* switches, int fd) {
-  // The -d report goes to stdout only: catch it in memory.
-  char* log = nullptr;
-  size_t log_size = 0;
-  FILE* memory = open_memstream(&log, &log_size);
-  if (memory == nullptr) return false;
-  stdout = memory;
-  tetgenio out;
-  tetrahedralize(switches, in, &out);
-  std::fflush(memory);
-  const auto pairs = ParseIntersections(std::string(log, log_size));
-  const MessageHeader header{MessageKind::kIntersections, 0, 0, static_cast<std::int64_t>(pairs.size())};
-  return WriteAll(fd, &header, sizeof(header)) && WriteAll(fd, pairs.data(), sizeof(pairs[0]) * pairs.size());
-}
-
-// Reads the request, runs TetGen, sends the message; returns the exit code.
-int ServeChild() {
-  Request request{};
-  if (!ReadAllAt(kRequestFd, &request, sizeof(request), 0) || request.magic != kRequestMagic ||
-      request.switches_bytes <= 0 || request.switches_bytes > 256 || request.points < 0 || request.faces < 0 ||
-      request.points > std::numeric_limits<std::int32_t>::max() ||
-      request.faces > std::numeric_limits<std::int32_t>::max()) {
-    return 2;
-  }
-  bool sent = false;
-  try {
-    std::string switches(static_cast<size_t>(request.switches_bytes), '\0');
-    std::vector<double> points(3 * static_cast<size_t>(request.points));
-    std::vector<std::int32_t> faces(3 * static_cast<size_t>(request.faces));
-    off_t offset = sizeof(request);
-    if (!ReadAllAt(kRequestFd, switches.data(), switches.size(), offset)) return 2;
-    offset += static_cast<off_t>(switches.size());
-    if (!ReadAllAt(kRequestFd, points.data(), sizeof(double) * points.size(), offset)) return 2;
-    offset += static_cast<off_t>(sizeof(double) * points.size());
-    if (!ReadAllAt(kRequestFd, faces.data(), sizeof(std::int32_t) * faces.size(), offset)) return 2;
-    close(kRequestFd);
-    tetgenio in;
-    FillTetGenInput(points, faces, &in);
-    sent = request.diagnose != 0 ? SendIntersections(&in, switches.data(), kResultFd)
-                                 : SendMesh(&in, switches.data(), kResultFd);
-  } catch (int code) {  // TetGen's terminatetetgen()
-    sent = SendHeader(kResultFd, MessageKind::kTetGenError, code);
-  } catch (const std::bad_alloc&) {
-    sent = SendHeader(kResultFd, MessageKind::kOutOfMemory);
-  } catch (...) {
-    sent = SendHeader(kResultFd, MessageKind::kUnknownException);
-  }
-  return sent ? 0 : 1;
-}
-
-// Runs before main() in every program that links this file; in anything but a TetGen child it only reads one
-// variable. _exit: no atexit handlers, no static destructors, no sanitizer leak report of the parent's objects.
-__attribute__((constructor)) void ServeChildIfAsked() {
-  const char* role = std::getenv(kChildVariable);
-  if (role == nullptr || std::strcmp(role, kChildRole) != 0) return;
-  _exit(ServeChild());
-}
-
-// ---------------------------------------------------------------------------------------------------------
-// The parent side.
-
-struct ChildOutcome {
-  bool timed_out = false;
-  bool complete = false;  // a whole message arrived
-  MessageHeader header{};
-  std::vector<char> payload;
-  std::optional<int> wait_status;  // empty if it could not be collected
-};
-
-// Owns a started child: however the parent leaves, the read end is closed and the child killed and reaped.
-class Child {
- public:
-  Child(pid_t pid, int fd) : pid_(pid), fd_(fd) {}
-  Child(const Child&) = delete;
-  Child& operator=(const Child&) = delete;
-  ~Child() {
-    if (pid_ > 0) Reap(true);
-  }
-
-  int fd() const { return fd_; }
-
-  std::optional<int> Reap(bool kill_first) {
-    close(fd_);
-    if (kill_first) kill(pid_, SIGKILL);
-    int status = 0;
-    pid_t reaped;
-    do {
-      reaped = waitpid(pid_, &status, 0);
-    } while (reaped < 0 && errno == EINTR);
-    pid_ = -1;
-    if (reaped < 0) return std::nullopt;  // e.g. the caller set SIGCHLD to SIG_IGN
-    return status;
-  }
-
- private:
-  pid_t pid_;
-  int fd_;
-};
-
-std::string SystemError(const char* call, int error) {
-  return fmt::format("{} failed: {}", call, std::generic_category().message(error));
-}
-
-std::string SystemError(const char* call) { return SystemError(call, errno); }
-
-// Closes a descriptor when it goes out of scope.
-class Descriptor {
- public:
-  explicit Descriptor(int fd = -1) : fd_(fd) {}
-  Descriptor(const Descriptor&) = delete;
-  Descriptor& operator=(const Descriptor&) = delete;
-  Descriptor(Descriptor&& other) noexcept : fd_(other.Release()) {}
-  ~Descriptor() { Reset(); }
-  int get() const { return fd_; }
-  int Release() { return std::exchange(fd_, -1); }
-  void Reset(int fd = -1) {
-    if (fd_ >= 0) close(fd_);
-    fd_ = fd;
-  }
-
- private:
-  int fd_;
-};
-
-[[noreturn]] void CannotStart(const std::string& reason) {
-  throw ToError(TetGenFailed("could not be started: " + reason));
-}
-
-// The request as an anonymous in-memory file (no pipe to fill, no SIGPIPE if the child dies early).
-Descriptor WriteRequest(const Points& vertices, const Faces& faces, const std::string& switches, bool diagnose) {
-  Descriptor request(memfd_create("springblend-tetgen-request", MFD_CLOEXEC));
-  if (request.get() < 0) CannotStart(SystemError("memfd_create"));
-  const Request header{kRequestMagic, diagnose ? 1 : 0, static_cast<std::int32_t>(switches.size()), vertices.rows(),
-                       faces.rows()};
-  static_assert(sizeof(int) == sizeof(std::int32_t));
-  if (!WriteAll(request.get(), &header, sizeof(header)) ||
-      !WriteAll(request.get(), switches.data(), switches.size()) ||
-      !WriteAll(request.get(), vertices.data(), sizeof(double) * static_cast<size_t>(vertices.size())) ||
-      !WriteAll(request.get(), faces.data(), sizeof(int) * static_cast<size_t>(faces.size()))) {
-    CannotStart(SystemError("writing the request"));
-  }
-  return request;
-}
-
-// A copy of `fd` numbered above the descriptors the child gets, so that setting those up cannot clobber it.
-Descriptor HighCopy(int fd) {
-  Descriptor copy(fcntl(fd, F_DUPFD_CLOEXEC, kResultFd + 1));
-  if (copy.get() < 0) CannotStart(SystemError("fcntl(F_DUPFD_CLOEXEC)"));
-  return copy;
-}
-
-// Starts this executable as a TetGen child reading `request` and writing to `result`; returns its pid.
-pid_t SpawnChild(int request, int result) {
-  posix_spawn_file_actions_t actions;
-  posix_spawnattr_t attributes;
-  if (int error = posix_spawn_file_actions_init(&actions); error != 0) {
-    CannotStart(SystemError("posix_spawn_file_actions_init", error));
-  }
-  if (int error = posix_spawnattr_init(&attributes); error != 0) {
-    posix_spawn_file_actions_destroy(&actions);
-    CannotStart(SystemError("posix_spawnattr_init", error));
-  }
-  // Default dispositions and an empty mask for every signal (the caller may block SIGTERM for a signal thread,
-  // or have set SIGPIPE to be ignored); standard streams on /dev/null (TetGen prints); nothing else inherited.
-  sigset_t all, none;
-  sigfillset(&all);
-  sigemptyset(&none);
-  int error = posix_spawnattr_setsigdefault(&attributes, &all);
-  if (error == 0) error = posix_spawnattr_setsigmask(&attributes, &none);
-  if (error == 0) error = posix_spawnattr_setflags(&attributes, POSIX_SPAWN_SETSIGDEF | POSIX_SPAWN_SETSIGMASK);
-  if (error == 0) error = posix_spawn_file_actions_addopen(&actions, STDIN_FILENO, "/dev/null", O_RDONLY, 0);
-  if (error == 0) error = posix_spawn_file_actions_addopen(&actions, STDOUT_FILENO, "/dev/null", O_WRONLY, 0);
-  if (error == 0) error = posix_spawn_file_actions_adddup2(&actions, STDOUT_FILENO, STDERR_FILENO);
-  if (error == 0) error = posix_spawn_file_actions_adddup2(&actions, request, kRequestFd);
-  if (error == 0) error = posix_spawn_file_actions_adddup2(&actions, result, kResultFd);
-  if (error == 0) error = posix_spawn_file_actions_addclosefrom_np(&actions, kResultFd + 1);
-
-  // The environment plus the role; an inherited role (this process being a child itself) is replaced.
-  const std::string role = fmt::format("{}={}", kChildVariable, kChildRole);
-  std::vector<char*> environment;
-  const std::string prefix = fmt::format("{}=", kChildVariable);
-  for (char** variable = environ; *variable != nullptr; ++variable) {
-    if (std::strncmp(*variable, prefix.c_str(), prefix.size()) != 0) environment.push_back(*variable);
-  }
-  environment.push_back(const_cast<char*>(role.c_str()));
-  environment.push_back(nullptr);
-  char name[] = "springblend-tetgen";
-  char* arguments[] = {name, nullptr};
-
-  pid_t pid = -1;
-  if (error == 0) error = posix_spawn(&pid, "/proc/self/exe", &actions, &attributes, arguments, environment.data());
-  posix_spawn_file_actions_destroy(&actions);
-  posix_spawnattr_destroy(&attributes);
-  if (error != 0) CannotStart(SystemError("posix_spawn of /proc/self/exe", error));
-  return pid;
-}
-
-// Runs TetGen with `switches` in a child and collects its message; kills the child at `deadline`.
-ChildOutcome RunInChild(const Points& vertices, const Faces& faces, const std::string& switches, bool diagnose,
-                        Clock::time_point deadline) {
-  Descriptor request = WriteRequest(vertices, faces, switches, diagnose);
-  Descriptor high_request = HighCopy(request.get());
-  request.Reset();
-  int fds[2];
-  // Close-on-exec keeps the pipe out of programs that other threads spawn meanwhile.
-  if (pipe2(fds, O_CLOEXEC) != 0) CannotStart(SystemError("pipe2"));
-  Descriptor read_end(fds[0]), write_end(fds[1]);
-  Descriptor high_write_end = HighCopy(write_end.get());
-  write_end.Reset();
-  const pid_t pid = SpawnChild(high_request.get(), high_write_end.get());
-  // Only the child holds the write end now: its exit is the end of file.
-  high_write_end.Reset();
-  high_request.Reset();
-  Child child(pid, read_end.Release());
-
-  // Read while the child writes, so that a result larger than the pipe's buffer cannot block it.
-  ChildOutcome outcome;
-  std::vector<char> buffer(sizeof(MessageHeader));
-  size_t received = 0;
-  bool have_header = false;
-  while (received < buffer.size()) {
-    const auto left = std::chrono::ceil<std::chrono::milliseconds>(deadline - Clock::now()).count();
-    if (left <= 0) {
-      outcome.timed_out = true;
-      break;
-    }
-    pollfd ready{child.fd(), POLLIN, 0};
-    const int polled = poll(&ready, 1, static_cast<int>(std::min<decltype(left)>(left, 1 << 30)));
-    if (polled == 0 || (polled < 0 && errno == EINTR)) continue;
-    if (polled < 0) break;
-    const ssize_t got = read(child.fd(), buffer.data() + received, buffer.size() - received);
-    if (got == 0) break;  // end of file: the child is gone
-    if (got < 0) {
-      if (errno == EINTR || errno == EAGAIN) continue;
-      break;
-    }
-    received += static_cast<size_t>(got);
-    if (!have_header && received == sizeof(MessageHeader)) {
-      std::memcpy(&outcome.header, buffer.data(), sizeof(MessageHeader));
-      const std::int64_t payload = PayloadBytes(outcome.header);
-      if (payload < 0) break;
-      have_header = true;
-      buffer.resize(sizeof(MessageHeader) + static_cast<size_t>(payload));
-    }
-  }
-  outcome.complete = have_header && received == buffer.size();
-  // After a complete message the child only has to _exit; otherwise it may still be running.
-  outcome.wait_status = child.Reap(!outcome.complete);
-  if (outcome.complete) outcome.payload.assign(buffer.begin() + sizeof(MessageHeader), buffer.end());
-  return outcome;
-}
-
 std::string SignalName(int signal_number) {
   const char* abbreviation = sigabbrev_np(signal_number);
   return abbreviation != nullptr ? fmt::format("SIG{}", abbreviation) : fmt::format("signal {}", signal_number);
 }
 
 // Why a run that ended in time delivered no mesh.
-Failure DescribeFailure(const ChildOutcome& run) {
+Failure DescribeFailure(const tetgen::Outcome& run) {
   if (!run.complete) {
     if (!run.wait_status) return TetGenFailed("ended without a result");
     if (WIFSIGNALED(*run.wait_status)) return TetGenFailed("crashed with " + SignalName(WTERMSIG(*run.wait_status)));
@@ -622,7 +211,7 @@ Failure DescribeFailure(const ChildOutcome& run) {
 // ---------------------------------------------------------------------------------------------------------
 // Input, and reading and checking the result.
 
-TetMesh ReadMesh(const ChildOutcome& run, int surface_vertices) {
+TetMesh ReadMesh(const tetgen::Outcome& run, int surface_vertices) {
   TetMesh mesh;
   mesh.surface_vertices = surface_vertices;
   mesh.vertices.resize(run.header.points, 3);
@@ -731,7 +320,10 @@ TetMesh Tetrahedralize(const Points& vertices, const Faces& faces, const Tetrahe
   const auto timeout = std::chrono::duration<double>(std::min(options.timeout_seconds, 1e8));
   const Clock::time_point deadline = Clock::now() + std::chrono::duration_cast<Clock::duration>(timeout);
 
-  const ChildOutcome run = RunInChild(vertices, faces, MeshingSwitches(options), false, deadline);
+  const std::int64_t cpu_seconds = tetgen::CpuSecondsFor(options.timeout_seconds);
+  const tetgen::Outcome run =
+      tetgen::HelperProcess(vertices, faces, MeshingSwitches(options), tetgen::Task::kMesh, cpu_seconds)
+          .Collect(deadline);
   if (run.timed_out) {
     throw ToError(TetGenFailed(fmt::format(
         "timed out: no result within {} s (timeout_seconds), its process was killed", options.timeout_seconds)));
@@ -746,7 +338,8 @@ TetMesh Tetrahedralize(const Points& vertices, const Faces& faces, const Tetrahe
   }
   // The checks before the run cannot see self-intersections, the usual reason why TetGen fails on a closed
   // surface. Its -d check finds them; it gets what is left of the time.
-  const ChildOutcome diagnosis = RunInChild(vertices, faces, "pd", true, deadline);
+  const tetgen::Outcome diagnosis =
+      tetgen::HelperProcess(vertices, faces, "pd", tetgen::Task::kDiagnose, cpu_seconds).Collect(deadline);
   if (diagnosis.complete && diagnosis.header.kind == MessageKind::kIntersections && diagnosis.header.count > 0) {
     std::array<std::int32_t, 2> example;
     std::memcpy(example.data(), diagnosis.payload.data(), sizeof(example));

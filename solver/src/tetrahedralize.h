@@ -1,5 +1,6 @@
-// Constrained Delaunay tetrahedralization of a closed triangle surface with TetGen 1.5, run in a child
-// process so that TetGen's exit(), thrown error codes, crashes and endless loops cannot take the caller down.
+// Constrained Delaunay tetrahedralization of a closed triangle surface with TetGen 1.5, run in a helper process
+// (springblend-tetgen, see tetgen_process.h) so that TetGen's exit(), thrown error codes, crashes and endless
+// loops cannot take the caller down.
 #pragma once
 
 #include <Eigen/Core>

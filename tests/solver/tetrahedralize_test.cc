@@ -5,6 +5,10 @@
 #include <Eigen/Geometry>
 #include <gmock/gmock.h>
 #include <gtest/gtest.h>
+#include <signal.h>
+#include <sys/prctl.h>
+#include <sys/wait.h>
+#include <unistd.h>
 
 #include <array>
 #include <chrono>
@@ -19,6 +23,8 @@
 #include <vector>
 
 #include "springblend/error.h"
+#include "springblend/runtime.h"
+#include "tetgen_process.h"
 
 namespace springblend::internal {
 namespace {
@@ -307,6 +313,94 @@ TEST(Tetrahedralize, RunsFromTwoThreadsAtOnce) {
     EXPECT_TRUE(mesh.vertices == reference.vertices);
     EXPECT_TRUE(mesh.tets == reference.tets);
   }
+}
+
+// The helper is a program of ours, found next to the test (build/<preset>/libexec/springblend from tests/), not
+// this test binary started again.
+TEST(TetGenHelper, IsOurHelperProgram) {
+  const std::string helper = tetgen::FindHelper();
+  EXPECT_THAT(helper, ::testing::EndsWith("/springblend-tetgen"));
+}
+
+TEST(TetGenHelper, AnExplicitPathComesFirstAndAMissingOneSaysWhere) {
+  SetTetGenHelper("/nonexistent/springblend-tetgen");
+  const Error error = CatchError([] { tetgen::FindHelper(); });
+  SetTetGenHelper("");
+  EXPECT_EQ(error.code(), ErrorCode::kInternal);
+  EXPECT_THAT(error.what(), HasSubstr("/nonexistent/springblend-tetgen"));
+  EXPECT_THAT(error.what(), HasSubstr("SPRINGBLEND_TETGEN_HELPER"));
+  // Found again once the explicit path is cleared.
+  const Surface cube = LoadObj(DataPath("cube/cube.obj"));
+  ExpectValidTetMesh(cube, Tetrahedralize(cube.vertices, cube.faces));
+}
+
+// Whether `pid` is gone: reaped, or a zombie nobody reaped yet.
+bool Gone(pid_t pid) {
+  std::ifstream stat("/proc/" + std::to_string(pid) + "/stat");
+  std::string line;
+  if (!std::getline(stat, line)) return true;
+  const size_t close = line.rfind(')');
+  return close != std::string::npos && close + 2 < line.size() && line[close + 2] == 'Z';
+}
+
+// A process that started a helper is killed with SIGKILL (no destructor runs): the helper goes with it.
+TEST(TetGenHelper, DiesWithItsParent) {
+  // Orphans are re-parented to this process, so the helper can be reaped and its end seen here.
+  ASSERT_EQ(prctl(PR_SET_CHILD_SUBREAPER, 1), 0);
+  int report[2];
+  ASSERT_EQ(pipe(report), 0);
+  const Surface cube = LoadObj(DataPath("cube/cube.obj"));
+  const pid_t parent = fork();  // this test runs alone in its process (ctest), so the fork is single-threaded
+  ASSERT_GE(parent, 0);
+  if (parent == 0) {
+    close(report[0]);
+    tetgen::HelperProcess helper(cube.vertices, cube.faces, "", tetgen::Task::kHold, 0);
+    const pid_t pid = helper.pid();
+    if (write(report[1], &pid, sizeof(pid)) != sizeof(pid)) _exit(1);
+    for (;;) pause();
+  }
+  close(report[1]);
+  pid_t helper = -1;
+  ASSERT_EQ(read(report[0], &helper, sizeof(helper)), static_cast<ssize_t>(sizeof(helper)));
+  close(report[0]);
+  ASSERT_GT(helper, 0);
+  // The helper reads its request and ties itself to the parent; give it the time to get there.
+  std::this_thread::sleep_for(std::chrono::milliseconds(300));
+  ASSERT_FALSE(Gone(helper)) << "the helper ended by itself";
+  ASSERT_EQ(kill(parent, SIGKILL), 0);
+  int status = 0;
+  ASSERT_EQ(waitpid(parent, &status, 0), parent);
+  pid_t reaped = 0;
+  for (int i = 0; i < 100 && reaped == 0; ++i) {
+    reaped = waitpid(helper, &status, WNOHANG);
+    if (reaped == 0) std::this_thread::sleep_for(std::chrono::milliseconds(50));
+  }
+  prctl(PR_SET_CHILD_SUBREAPER, 0);
+  if (reaped != helper) {
+    kill(helper, SIGKILL);
+    FAIL() << "the helper outlived its parent by 5 s";
+  }
+  ASSERT_TRUE(WIFSIGNALED(status));
+  EXPECT_EQ(WTERMSIG(status), SIGKILL);
+}
+
+// A helper that burns CPU is stopped by its own RLIMIT_CPU, even with a far deadline in the parent.
+TEST(TetGenHelper, HasItsOwnCpuLimit) {
+  const Surface cube = LoadObj(DataPath("cube/cube.obj"));
+  tetgen::HelperProcess helper(cube.vertices, cube.faces, "", tetgen::Task::kSpin, 1);
+  const auto start = tetgen::Clock::now();
+  const tetgen::Outcome outcome = helper.Collect(start + std::chrono::seconds(30));
+  EXPECT_FALSE(outcome.timed_out);
+  EXPECT_LT(tetgen::Clock::now() - start, std::chrono::seconds(10));
+  ASSERT_TRUE(outcome.wait_status.has_value());
+  ASSERT_TRUE(WIFSIGNALED(*outcome.wait_status));
+  EXPECT_THAT(WTERMSIG(*outcome.wait_status), ::testing::AnyOf(SIGXCPU, SIGKILL));
+}
+
+TEST(TetGenHelper, CpuLimitFollowsTheTimeout) {
+  EXPECT_EQ(tetgen::CpuSecondsFor(0.001), 2);
+  EXPECT_EQ(tetgen::CpuSecondsFor(60.0), 61);
+  EXPECT_EQ(tetgen::CpuSecondsFor(1e8), 0);  // none
 }
 
 }  // namespace

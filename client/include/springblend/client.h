@@ -9,7 +9,7 @@
 #include <string>
 #include <vector>
 
-#include "springblend/mesh.h"
+#include "springblend/geometry.h"
 #include "springblend/v1/springblend.grpc.pb.h"
 
 namespace springblend {

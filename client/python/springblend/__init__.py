@@ -12,9 +12,10 @@ Put the build's python directory (build/release/python) on sys.path, then:
 """
 
 from springblend import colliders
+from springblend._version import __version__
 from springblend._generated import pb
 from springblend.client import CHARACTER_HEADER, Client, InteractiveSession, Solution, SolvedFrame
 from springblend.errors import SpringblendError
 
 __all__ = ["CHARACTER_HEADER", "Client", "InteractiveSession", "Solution", "SolvedFrame", "SpringblendError",
-           "colliders", "pb"]
+           "__version__", "colliders", "pb"]

@@ -57,17 +57,4 @@ class Collider {
   std::shared_ptr<const internal::MeshColliderTree> tree_;
 };
 
-// The command line's collider syntax split into its kind and numbers (or path), checked for their count.
-struct ColliderSpec {
-  std::string kind;            // sphere | capsule | box | plane | mesh
-  std::vector<double> values;  // the numbers, in the syntax's order
-  std::string path;            // mesh only
-};
-ColliderSpec ParseColliderSpec(const std::string& spec);
-
-// Parses the command line's collider syntax (throws Error naming the problem):
-//   sphere:cx,cy,cz,r   capsule:x1,y1,z1,x2,y2,z2,r   box:cx,cy,cz,hx,hy,hz   plane:px,py,pz,nx,ny,nz
-//   mesh:PATH (any mesh format LoadMesh reads)
-Collider ParseCollider(const std::string& spec);
-
 }  // namespace springblend

@@ -1,22 +1,14 @@
 // Triangle meshes as the solver sees them: a vertex array and a face array, in the order of the file.
 #pragma once
 
-#include <Eigen/Core>
 #include <string>
 #include <vector>
 
+#include "springblend/geometry.h"
+
 namespace springblend {
 
-using Points = Eigen::Matrix<double, Eigen::Dynamic, 3, Eigen::RowMajor>;  // #V by 3
-using Faces = Eigen::Matrix<int, Eigen::Dynamic, 3, Eigen::RowMajor>;     // #F by 3, 0-based
-
-struct TriangleMesh {
-  std::string name;    // the target's name (file stem for loaded meshes); used in messages
-  std::string source;  // where it came from (a path, or "memory"); used in messages
-  Points vertices;
-  Faces faces;
-  int polygons_split = 0;  // polygons with more than three corners that loading fan-triangulated
-};
+// Points, Faces and TriangleMesh live in springblend/geometry.h (header-only, shared with the client).
 
 // Load OBJ, PLY, OFF or STL (by extension), keeping the file's vertex order exactly; polygons are
 // fan-triangulated. OBJ, PLY and STL go through OpenMesh (OBJ face corners and PLY headers are checked first, OBJ
