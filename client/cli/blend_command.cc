@@ -38,6 +38,7 @@ struct BlendArgs {
   int max_iterations = SolveOptions{}.max_iterations;
   std::string solver = "cholmod";
   std::string hessian = "true";
+  std::string method = "newton";
   bool no_target_paths = false;
   bool verbose = false;
   std::vector<std::string> colliders;
@@ -115,6 +116,7 @@ int RunBlend(const BlendArgs& args) {
   options.max_iterations = args.max_iterations;
   options.use_target_paths = !args.no_target_paths;
   options.linear = args.linear;
+  options.method = SolveMethodFromString(args.method);
   if (args.hessian == "projected") {
     options.hessian = HessianMode::kProjected;
   } else if (args.hessian == "absolute") {
@@ -216,6 +218,7 @@ Runner AddBlendCommand(CLI::App& app) {
   cmd->add_option("--tolerance", args->tolerance, "residual tolerance (largest force, strain units)");
   cmd->add_option("--max-iterations", args->max_iterations, "Newton iterations per frame");
   cmd->add_option("--solver", args->solver, "sparse Cholesky backend: cholmod or eigen");
+  cmd->add_option("--method", args->method, "equilibrium method: newton (default), newton-laplacian or lbfgs");
   cmd->add_option("--hessian", args->hessian,
                   "true (true Hessian, projected when not positive definite) or projected");
   cmd->add_flag("--no-target-paths", args->no_target_paths,

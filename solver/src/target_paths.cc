@@ -110,12 +110,17 @@ std::vector<TargetPath> BuildTargetPaths(const Rig& rig, int intervals, double e
     std::vector<PathSolver::Sample> up, down;
     Predictor from_rest;
     for (int k = 0; k <= intervals; ++k) up.push_back(solver.Solve(k * step, from_rest, reports[t]));
-    Predictor from_target;
-    for (int k = intervals; k >= 0; --k) down.push_back(solver.Solve(k * step, from_target, reports[t]));
-    std::reverse(down.begin(), down.end());
     std::vector<Eigen::MatrixXf> inside(intervals + 1);
-    for (int k = 0; k <= intervals; ++k) {
-      inside[k] = up[k].energy <= down[k].energy ? up[k].correction : down[k].correction;
+    for (int k = 0; k <= intervals; ++k) inside[k] = up[k].correction;
+    // When the way up ends on the target itself, the way down would retrace it: skip it.
+    const double reached = up.back().correction.cwiseAbs().maxCoeff();
+    if (!(reached <= 1e-6 * rig.summary().bounding_box_diagonal)) {
+      Predictor from_target;
+      for (int k = intervals; k >= 0; --k) down.push_back(solver.Solve(k * step, from_target, reports[t]));
+      std::reverse(down.begin(), down.end());
+      for (int k = 0; k <= intervals; ++k) {
+        if (down[k].energy < up[k].energy) inside[k] = down[k].correction;
+      }
     }
     const auto continue_from = [&](int end, int direction, int count, std::vector<Eigen::MatrixXf>* out) {
       // The predictor starts from the chosen end sample (a converged equilibrium).

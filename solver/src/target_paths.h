@@ -1,7 +1,7 @@
 // Each target's own path, for stateless frames: at rig build, the equilibria of alpha * target for alpha
 // sampled over [-extension, 1 + extension], each solved by continuation from the one before (the paper's
-// sweep) up from the rest shape and down from the target, keeping at each alpha the one of lower energy
-// (so alpha 0 and 1 are the rest shape and the target exactly), and kept as the physical correction (solved
+// sweep) up from the rest shape and, when that does not end on the target, down from the target, keeping at
+// each alpha the one of lower energy (so alpha 0 and 1 are the rest shape and the target exactly), and kept as the physical correction (solved
 // minus linear blend) in the anchor's frame. A frame starts
 // from the linear blend plus each active target's correction at its weight: a single-target frame starts on
 // the branch the sweep follows, any frame starts close to its answer, and the answer is a function of the
