@@ -4,12 +4,21 @@
 #include <grpcpp/support/status.h>
 
 #include <exception>
+#include <stdexcept>
+#include <string>
 
 #include "security.h"
 
 namespace springblend::server {
 
-// springblend::Error: kInvalidInput -> INVALID_ARGUMENT, kNotFound -> NOT_FOUND, kNumerical -> INTERNAL
+// A request over one of the server's limits (frames, upload size, the memory budget, the queue): the request may
+// be fine, the server will not take it now. Maps to RESOURCE_EXHAUSTED.
+class LimitError : public std::runtime_error {
+ public:
+  using std::runtime_error::runtime_error;
+};
+
+// LimitError -> RESOURCE_EXHAUSTED. springblend::Error: kInvalidInput -> INVALID_ARGUMENT, kNotFound -> NOT_FOUND, kNumerical -> INTERNAL
 // (with the solver's words), kInternal -> INTERNAL; anything else -> INTERNAL. The message is kept: it
 // names the field, vertex or face at fault.
 grpc::Status ToStatus(const std::exception& error);
