@@ -30,7 +30,7 @@ void CheckId(const std::string& id, const char* field) {
   if (CharacterStore::ValidId(id)) return;
   Invalid(fmt::format("{} '{}'{} is not a character id: ids are 64 lowercase hex digits (SHA-256), as "
                       "UploadCharacter returns them",
-                      field, Printable(id, 16), id.size() > 16 ? fmt::format("... ({} bytes)", id.size()) : ""));
+                      field, Printable(id, 16), id.size() > 16 ? fmt::format(" ({} bytes)", id.size()) : ""));
 }
 
 std::string Printable(std::string_view text, size_t max) {
@@ -265,7 +265,7 @@ Frame ToFrame(const v1::FrameRequest& in, const Rig& rig, size_t colliders, size
   Frame frame;
   frame.weights.assign(in.weights().begin(), in.weights().end());
   for (size_t t = 0; t < frame.weights.size(); ++t) {
-    if (std::abs(frame.weights[t]) > limits.max_weight) {
+    if (std::isfinite(frame.weights[t]) && std::abs(frame.weights[t]) > limits.max_weight) {
       Invalid(fmt::format("frames[{}].weights[{}] = {} is beyond +-{}: the blended shape would overflow", f, t,
                           frame.weights[t], limits.max_weight));
     }

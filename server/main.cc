@@ -163,6 +163,9 @@ int main(int argc, char** argv) {
     builder.RegisterService(&characters);
     builder.RegisterService(&solves);
     builder.SetMaxReceiveMessageSize(64 << 20);
+    std::vector<std::unique_ptr<grpc::experimental::ServerInterceptorFactoryInterface>> interceptors;
+    interceptors.push_back(MakeReflectionGuard(auth));
+    builder.experimental().SetInterceptorCreators(std::move(interceptors));
     std::unique_ptr<grpc::Server> server = builder.BuildAndStart();
     if (!server || port == 0) {
       std::cerr << "springblend-server: cannot listen on " << listen << "\n";

@@ -67,6 +67,46 @@ std::string DoubleCone(int segments) {
   return obj.str();
 }
 
+// One message on a streaming method through the generic stub: the final status and how many answers came.
+std::pair<grpc::Status, int> GenericStream(const std::shared_ptr<grpc::Channel>& channel, const std::string& method,
+                                           const std::string& bytes, const std::string& token = "") {
+  grpc::GenericStub generic(channel);
+  const grpc::Slice slice(bytes);
+  const grpc::ByteBuffer message(&slice, 1);
+  grpc::CompletionQueue cq;
+  grpc::ClientContext context;
+  context.set_deadline(std::chrono::system_clock::now() + std::chrono::seconds(10));
+  if (!token.empty()) context.AddMetadata("authorization", "Bearer " + token);
+  auto call = generic.PrepareCall(&context, method, &cq);
+  void* tag = nullptr;
+  bool ok = false;
+  const auto step = [&](void* expected) {
+    while (cq.Next(&tag, &ok) && tag != expected) {
+    }
+    return ok;
+  };
+  call->StartCall(reinterpret_cast<void*>(1));
+  step(reinterpret_cast<void*>(1));
+  call->Write(message, reinterpret_cast<void*>(2));
+  step(reinterpret_cast<void*>(2));
+  call->WritesDone(reinterpret_cast<void*>(3));
+  step(reinterpret_cast<void*>(3));
+  int answers = 0;
+  grpc::ByteBuffer response;
+  for (;;) {
+    call->Read(&response, reinterpret_cast<void*>(4));
+    if (!step(reinterpret_cast<void*>(4))) break;
+    ++answers;
+  }
+  grpc::Status status;
+  call->Finish(&status, reinterpret_cast<void*>(5));
+  step(reinterpret_cast<void*>(5));
+  cq.Shutdown();
+  while (cq.Next(&tag, &ok)) {
+  }
+  return {status, answers};
+}
+
 v1::SolveRequest WithMeshCollider(v1::SolveRequest request, const std::string& obj) {
   request.add_colliders()->set_mesh_obj(obj);
   return request;
@@ -461,33 +501,29 @@ TEST_F(HostileTest, UnparseableRequestBytesAreInvalidArgument) {
   }
   for (const std::string method : {"/springblend.v1.SolveService/Solve", "/springblend.v1.SolveService/Interactive",
                                    "/springblend.v1.CharacterService/UploadCharacter"}) {
-    grpc::CompletionQueue cq;
-    grpc::ClientContext context;
-    context.set_deadline(std::chrono::system_clock::now() + std::chrono::seconds(10));
-    auto call = generic.PrepareCall(&context, method, &cq);
-    void* tag = nullptr;
-    bool ok = false;
-    call->StartCall(reinterpret_cast<void*>(1));
-    cq.Next(&tag, &ok);
-    call->Write(bad, reinterpret_cast<void*>(2));
-    cq.Next(&tag, &ok);
-    call->WritesDone(reinterpret_cast<void*>(3));
-    cq.Next(&tag, &ok);
-    grpc::ByteBuffer response;
-    for (call->Read(&response, reinterpret_cast<void*>(4)); cq.Next(&tag, &ok) && ok;) {
-      call->Read(&response, reinterpret_cast<void*>(4));
-    }
-    grpc::Status status;
-    call->Finish(&status, reinterpret_cast<void*>(5));
-    while (cq.Next(&tag, &ok) && tag != reinterpret_cast<void*>(5)) {
-    }
-    cq.Shutdown();
-    while (cq.Next(&tag, &ok)) {
-    }
+    const auto [status, answers] = GenericStream(channel_, method, garbage);
     EXPECT_EQ(status.error_code(), grpc::StatusCode::INVALID_ARGUMENT) << method << ": " << status.error_message();
     EXPECT_THAT(status.error_message(), HasSubstr("could not be parsed")) << method;
+    EXPECT_EQ(answers, 0);
   }
   ExpectServed("after unparseable requests");
+}
+
+// Reflection answered without a token although only health is open when tokens are configured.
+TEST(HostileTokenTest, ReflectionNeedsATokenWhenTokensAreConfigured) {
+  TempDir cache;
+  ServerProcess server(cache.path().string(), {"--workers", "1", "--token", "s3cret"});
+  const auto channel = grpc::CreateChannel(server.address(), grpc::InsecureChannelCredentials());
+  const std::string list_services("\x3a\x00", 2);  // ServerReflectionRequest{list_services: ""}
+  const std::string method = "/grpc.reflection.v1alpha.ServerReflection/ServerReflectionInfo";
+  const auto [refused, leaked] = GenericStream(channel, method, list_services);
+  EXPECT_FALSE(refused.ok());
+  EXPECT_EQ(leaked, 0);
+  const auto [served, answers] = GenericStream(channel, method, list_services, "s3cret");
+  EXPECT_TRUE(served.ok()) << served.error_message();
+  EXPECT_EQ(answers, 1);
+  Client anonymous({server.address(), std::chrono::seconds(10)});
+  EXPECT_TRUE(anonymous.Healthy()) << "health needs no token";
 }
 
 // The metrics responder served one connection at a time: 10 silent ones delayed a scrape by 20 s.
