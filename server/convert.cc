@@ -224,12 +224,13 @@ void ToOptions(const v1::SolveOptions& o, SolveJob* job) {
 }
 
 std::vector<Collider> ToColliders(const google::protobuf::RepeatedPtrField<v1::Collider>& colliders,
-                                  const Limits& limits) {
+                                  const Limits& limits, const std::function<bool()>& stopped) {
   if (colliders.size() > limits.max_colliders) {
     Invalid(fmt::format("{} colliders is over the limit of {}", colliders.size(), limits.max_colliders));
   }
   std::vector<Collider> out;
   for (int i = 0; i < colliders.size(); ++i) {
+    if (stopped && stopped()) throw CancelledError(fmt::format("stopped while converting colliders[{}]", i));
     const v1::Collider& c = colliders[i];
     try {
       switch (c.shape_case()) {
@@ -321,15 +322,17 @@ std::int64_t StreamBytes(const google::protobuf::RepeatedPtrField<v1::Collider>&
   return bytes + 512LL * rig.num_vertices();
 }
 
-SolveJob ToSolveJob(const v1::SolveRequest& request, const Rig& rig, const Limits& limits) {
+SolveJob ToSolveJob(const v1::SolveRequest& request, const Rig& rig, const Limits& limits,
+                    const std::function<bool()>& stopped) {
   SolveJob job;
   if (request.frames_size() == 0) Invalid("frames is empty: send at least one frame");
   if (request.frames_size() > limits.max_frames) {
     throw LimitError(fmt::format("{} frames is over the limit of {} (--max-frames)", request.frames_size(), limits.max_frames));
   }
   ToOptions(request.options(), &job);
-  job.colliders = ToColliders(request.colliders(), limits);
+  job.colliders = ToColliders(request.colliders(), limits, stopped);
   for (int f = 0; f < request.frames_size(); ++f) {
+    if (f % 1024 == 0 && stopped && stopped()) throw CancelledError(fmt::format("stopped while reading frames[{}]", f));
     job.frames.push_back(ToFrame(request.frames(f), rig, job.colliders.size(), static_cast<size_t>(f), limits));
   }
   return job;

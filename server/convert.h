@@ -2,6 +2,7 @@
 #pragma once
 
 #include <cstdint>
+#include <functional>
 #include <map>
 #include <string>
 #include <string_view>
@@ -72,10 +73,12 @@ struct SolveJob {
   SolveOptions options;
   bool with_normals = false;
 };
-SolveJob ToSolveJob(const v1::SolveRequest& request, const Rig& rig, const Limits& limits);
+SolveJob ToSolveJob(const v1::SolveRequest& request, const Rig& rig, const Limits& limits,
+                    const std::function<bool()>& stopped = {});
 // The parts of it, for Interactive (colliders and options once at the start, then each frame by itself).
+// `stopped`, when given, is asked before each collider and each frame: true throws CancelledError.
 std::vector<Collider> ToColliders(const google::protobuf::RepeatedPtrField<v1::Collider>& colliders,
-                                  const Limits& limits);
+                                  const Limits& limits, const std::function<bool()>& stopped = {});
 void ToOptions(const v1::SolveOptions& options, SolveJob* job);
 // `index` names the frame in messages: frames[index].
 Frame ToFrame(const v1::FrameRequest& request, const Rig& rig, size_t colliders, size_t index, const Limits& limits);

@@ -241,7 +241,7 @@ class SolveReactor final : public grpc::ServerWriteReactor<grpc::ByteBuffer> {
         return;
       }
       memory_.Grow(StreamBytes(request_.colliders(), *entry_->rig));
-      job_ = ToSolveJob(request_, *entry_->rig, context_.limits);
+      job_ = ToSolveJob(request_, *entry_->rig, context_.limits, [this] { return call_->IsCancelled() || Expired(); });
       solver_ = std::make_unique<Solver>(entry_->rig, job_.options);
       solver_->SetColliders(std::move(job_.colliders));
     } catch (const std::exception& e) {
@@ -464,7 +464,8 @@ class InteractiveReactor final : public grpc::ServerBidiReactor<grpc::ByteBuffer
       if (!entry_) return NotFound(start_.character_id());
       memory_.Grow(StreamBytes(start_.colliders(), *entry_->rig));
       ToOptions(start_.options(), &job_);
-      std::vector<Collider> colliders = ToColliders(start_.colliders(), context_.limits);
+      std::vector<Collider> colliders =
+          ToColliders(start_.colliders(), context_.limits, [this] { return call_->IsCancelled(); });
       colliders_ = colliders.size();
       solver_ = std::make_unique<Solver>(entry_->rig, job_.options);
       solver_->SetColliders(std::move(colliders));

@@ -6,6 +6,7 @@ namespace springblend::server {
 
 grpc::Status ToStatus(const std::exception& error) {
   if (dynamic_cast<const LimitError*>(&error)) return {grpc::StatusCode::RESOURCE_EXHAUSTED, error.what()};
+  if (dynamic_cast<const CancelledError*>(&error)) return {grpc::StatusCode::CANCELLED, error.what()};
   if (const auto* e = dynamic_cast<const Error*>(&error)) {
     switch (e->code()) {
       case ErrorCode::kInvalidInput: return {grpc::StatusCode::INVALID_ARGUMENT, e->what()};

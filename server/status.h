@@ -18,7 +18,13 @@ class LimitError : public std::runtime_error {
   using std::runtime_error::runtime_error;
 };
 
-// LimitError -> RESOURCE_EXHAUSTED. springblend::Error: kInvalidInput -> INVALID_ARGUMENT, kNotFound -> NOT_FOUND, kNumerical -> INTERNAL
+// Work stopped because its call was cancelled (or its deadline passed) part way. Maps to CANCELLED.
+class CancelledError : public std::runtime_error {
+ public:
+  using std::runtime_error::runtime_error;
+};
+
+// LimitError -> RESOURCE_EXHAUSTED, CancelledError -> CANCELLED. springblend::Error: kInvalidInput -> INVALID_ARGUMENT, kNotFound -> NOT_FOUND, kNumerical -> INTERNAL
 // (with the solver's words), kInternal -> INTERNAL; anything else -> INTERNAL. The message is kept: it
 // names the field, vertex or face at fault.
 grpc::Status ToStatus(const std::exception& error);
