@@ -14,23 +14,7 @@
 namespace springblend::server {
 namespace {
 
-const char* CodeName(grpc::StatusCode code) {
-  switch (code) {
-    case grpc::StatusCode::OK: return "OK";
-    case grpc::StatusCode::CANCELLED: return "CANCELLED";
-    case grpc::StatusCode::INVALID_ARGUMENT: return "INVALID_ARGUMENT";
-    case grpc::StatusCode::DEADLINE_EXCEEDED: return "DEADLINE_EXCEEDED";
-    case grpc::StatusCode::NOT_FOUND: return "NOT_FOUND";
-    case grpc::StatusCode::RESOURCE_EXHAUSTED: return "RESOURCE_EXHAUSTED";
-    case grpc::StatusCode::UNAUTHENTICATED: return "UNAUTHENTICATED";
-    case grpc::StatusCode::PERMISSION_DENIED: return "PERMISSION_DENIED";
-    case grpc::StatusCode::INTERNAL: return "INTERNAL";
-    default: return "OTHER";
-  }
-}
-
-const grpc::Status kQueueFull(grpc::StatusCode::RESOURCE_EXHAUSTED,
-                              "the server's solve queue is full; retry later or add replicas");
+const grpc::Status kQueueFull = QueueFull();
 
 // The request bytes as a message; false when they do not parse.
 template <typename Message>
@@ -45,12 +29,6 @@ grpc::ByteBuffer Serialize(const Message& message) {
   bool own = false;
   grpc::SerializationTraits<Message>::Serialize(message, &out, &own);
   return out;
-}
-
-grpc::Status Unparseable(const char* what) {
-  return {grpc::StatusCode::INVALID_ARGUMENT,
-          std::string("the request bytes could not be parsed as a springblend.v1.") + what +
-              " message (a client built from another proto, or corrupted bytes)"};
 }
 
 // The token check every handler makes before any work; a refusal is counted like any other answer.
@@ -86,7 +64,7 @@ grpc::ServerUnaryReactor* OnPool(grpc::CallbackServerContext* call, ServiceConte
   }
   auto request = std::make_shared<Request>();
   if (!Parse(*in, request.get())) {
-    const grpc::Status status = Unparseable(Request::descriptor()->name().c_str());
+    const grpc::Status status = Unparseable(Request::descriptor()->name());
     metrics.CountRequest(method, CodeName(status.error_code()));
     reactor->Finish(status);
     return reactor;
@@ -110,17 +88,12 @@ grpc::ServerUnaryReactor* OnPool(grpc::CallbackServerContext* call, ServiceConte
   return reactor;
 }
 
-grpc::Status NotFound(const std::string& id) {
-  return {grpc::StatusCode::NOT_FOUND,
-          "no character with id '" + id + "' on this server or in its cache directory; upload it first"};
-}
-
 grpc::Status StoppedStatus(const Watchdog::Handle& watch, const char* what) {
-  if (const char* why = watch.expired()) return {grpc::StatusCode::CANCELLED, why};
-  return {grpc::StatusCode::CANCELLED, what};
+  if (const char* why = watch.expired()) return Cancelled(why);
+  return Cancelled(what);
 }
 
-const grpc::Status kShuttingDown(grpc::StatusCode::UNAVAILABLE, "the server is shutting down");
+const grpc::Status kShuttingDown = ShuttingDown();
 
 class UploadReactor final : public grpc::ServerReadReactor<grpc::ByteBuffer> {
  public:
@@ -254,8 +227,7 @@ class SolveReactor final : public grpc::ServerWriteReactor<grpc::ByteBuffer> {
   void SolveNext() {
     const size_t i = next_;
     if (call_->IsCancelled() || Expired()) {
-      Done(Expired() ? grpc::Status(grpc::StatusCode::DEADLINE_EXCEEDED,
-                                    fmt::format("deadline passed after {} of {} frames", i, job_.frames.size()))
+      Done(Expired() ? DeadlineExceeded(fmt::format("deadline passed after {} of {} frames", i, job_.frames.size()))
                      : StoppedStatus(*watch_, "the client cancelled the stream"));
       return;
     }
@@ -315,7 +287,7 @@ class InteractiveReactor final : public grpc::ServerBidiReactor<grpc::ByteBuffer
     bytes_.Clear();
     if (!started_) {
       if (!incoming_.has_start()) {
-        Refuse(lock, {grpc::StatusCode::INVALID_ARGUMENT, "the first message must be a start message"});
+        Refuse(lock, BadMessage("the first message must be a start message"));
         return;
       }
       started_ = true;
@@ -325,7 +297,7 @@ class InteractiveReactor final : public grpc::ServerBidiReactor<grpc::ByteBuffer
       pending_ = std::move(*incoming_.mutable_frame());
       pending_index_ = received_++;
     } else {
-      Refuse(lock, {grpc::StatusCode::INVALID_ARGUMENT, "only the first message may be a start message"});
+      Refuse(lock, BadMessage("only the first message may be a start message"));
       return;
     }
     if (!Schedule(lock)) return;

@@ -29,6 +29,17 @@ class CancelledError : public std::runtime_error {
 // names the field, vertex or face at fault.
 grpc::Status ToStatus(const std::exception& error);
 
+// The server's own answers, built here so that every status code is chosen in this file.
+grpc::Status QueueFull();                               // RESOURCE_EXHAUSTED: the --queue is full
+grpc::Status ShuttingDown();                            // UNAVAILABLE
+grpc::Status NotFound(const std::string& id);           // NOT_FOUND: a valid id nobody uploaded
+grpc::Status Unparseable(const std::string& message);   // INVALID_ARGUMENT: bytes that are not that message
+grpc::Status BadMessage(const std::string& what);       // INVALID_ARGUMENT: a message out of place
+grpc::Status Cancelled(const std::string& why);         // CANCELLED: by the client, or the watchdog
+grpc::Status DeadlineExceeded(const std::string& what);  // DEADLINE_EXCEEDED
+// The code's name, for metrics labels.
+const char* CodeName(grpc::StatusCode code);
+
 // A refused token check: no token or an unknown one -> UNAUTHENTICATED; a known token whose role does not
 // allow the call -> PERMISSION_DENIED.
 grpc::Status ToStatus(const AuthVerdict& verdict);
