@@ -545,6 +545,82 @@ TEST_F(HostileTest, SilentMetricsConnectionsDoNotDelayAScrape) {
   for (int fd : silent) close(fd);
 }
 
+// Every kind at once: a normal client keeps getting the same frames, Get and List within 5 s each, while
+// degenerate and expensive colliders, readers that stop, uploads that stall, idle sessions and silent metrics
+// connections all run against the 2-worker server.
+TEST_F(HostileTest, ANormalClientIsServedWhileEveryKindRunsAtOnce) {
+  std::atomic<bool> stop{false};
+  std::vector<std::thread> hostile;
+  const auto v = cylinder_->rest.vertices.row(0);
+  std::ostringstream line;
+  for (int i = 0; i < 4; ++i) line << "v " << v(0) + i << " " << v(1) << " " << v(2) << "\n";
+  hostile.emplace_back([&, obj = Tetrahedron(line.str())] {
+    while (!stop) SendSolve(*solves_, WithMeshCollider(Normal(), obj), 15);
+  });
+  hostile.emplace_back([&] {
+    const std::string cone = DoubleCone(8000);
+    while (!stop) SendSolve(*solves_, WithMeshCollider(Normal(), cone), 15);
+  });
+  hostile.emplace_back([&] {  // readers that stop reading, one after another
+    v1::SolveRequest big = SweepRequest(character_->id(), 3000, {1.0, 0.0});
+    big.mutable_options()->set_linear(true);
+    while (!stop) {
+      auto context = Context(30);
+      auto reader = solves_->Solve(context.get(), big);
+      for (int i = 0; i < 20 && !stop; ++i) std::this_thread::sleep_for(std::chrono::milliseconds(100));
+      context->TryCancel();
+      reader->Finish();
+    }
+  });
+  hostile.emplace_back([&] {  // uploads that send a header and stall
+    v1::UploadChunk header;
+    header.mutable_header()->set_vertex_count(2'000'000);
+    header.mutable_header()->set_face_count(4'000'000);
+    header.mutable_header()->add_target_names("a");
+    while (!stop) {
+      auto context = Context(30);
+      v1::Character response;
+      auto writer = characters_->UploadCharacter(context.get(), &response);
+      writer->Write(header);
+      for (int i = 0; i < 20 && !stop; ++i) std::this_thread::sleep_for(std::chrono::milliseconds(100));
+      context->TryCancel();
+      writer->Finish();
+    }
+  });
+  hostile.emplace_back([&] {  // idle sessions
+    while (!stop) {
+      auto context = Context(30);
+      auto session = solves_->Interactive(context.get());
+      v1::InteractiveRequest start;
+      start.mutable_start()->set_character_id(character_->id());
+      session->Write(start);
+      for (int i = 0; i < 10 && !stop; ++i) std::this_thread::sleep_for(std::chrono::milliseconds(100));
+      context->TryCancel();
+      session->Finish();
+    }
+  });
+  std::vector<int> silent;
+  for (int i = 0; i < 10; ++i) {
+    const int fd = socket(AF_INET, SOCK_STREAM, 0);
+    sockaddr_in address{};
+    address.sin_family = AF_INET;
+    address.sin_port = htons(static_cast<std::uint16_t>(server_->metrics_port()));
+    inet_pton(AF_INET, "127.0.0.1", &address.sin_addr);
+    connect(fd, reinterpret_cast<sockaddr*>(&address), sizeof(address));
+    silent.push_back(fd);
+  }
+  std::this_thread::sleep_for(std::chrono::milliseconds(500));  // the readers' windows fill
+  const auto began = Clock::now();
+  for (int round = 0; round < 5 || Clock::now() - began < std::chrono::seconds(4); ++round) {
+    ExpectServed("round " + std::to_string(round) + " with every kind of hostile client running");
+    EXPECT_THAT(Metrics(), HasSubstr("springblend_frames_solved_total"));
+  }
+  stop = true;
+  for (auto& t : hostile) t.join();
+  for (int fd : silent) close(fd);
+  ExpectServed("after every kind of hostile client");
+}
+
 // 5. The store: a delete wins over a rebuild in flight, concurrent builds of one id share one build, and a corrupt
 // cache file is logged, removed and never listed.
 TEST(HostileStoreTest, DeleteWinsOverARebuildAndBuildsAreShared) {
