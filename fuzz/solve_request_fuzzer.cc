@@ -5,6 +5,7 @@
 #include <memory>
 
 #include "convert.h"
+#include "status.h"
 #include "springblend/error.h"
 #include "springblend/mesh.h"
 #include "springblend/rig.h"
@@ -34,6 +35,7 @@ extern "C" int LLVMFuzzerTestOneInput(const std::uint8_t* data, size_t size) {
   try {
     springblend::server::ToSolveJob(request, *rig, limits);
   } catch (const springblend::Error&) {
+  } catch (const springblend::server::LimitError&) {  // over a limit: RESOURCE_EXHAUSTED, a refusal too
   }
   return 0;
 }

@@ -5,6 +5,7 @@
 #include <cstdint>
 
 #include "convert.h"
+#include "status.h"
 #include "springblend/error.h"
 
 extern "C" int LLVMFuzzerTestOneInput(const std::uint8_t* data, size_t size) {
@@ -23,6 +24,7 @@ extern "C" int LLVMFuzzerTestOneInput(const std::uint8_t* data, size_t size) {
     }
     assembler.Finish();
   } catch (const springblend::Error&) {
+  } catch (const springblend::server::LimitError&) {  // over a limit: RESOURCE_EXHAUSTED, a refusal too
   }
   return 0;
 }

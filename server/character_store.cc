@@ -17,6 +17,8 @@
 
 #include "springblend/error.h"
 
+#include <spdlog/spdlog.h>
+
 namespace springblend::server {
 namespace {
 
@@ -290,9 +292,14 @@ std::optional<std::string> CharacterStore::ReadFile(const std::string& id) {
   }
   if (!ok) {
     // Never serve a corrupt file: drop it; the next upload writes it anew.
-    std::lock_guard lock(mutex_);
-    ++stats_.corrupt_files;
-    std::remove(PathOf(id).c_str());
+    {
+      std::lock_guard lock(mutex_);
+      ++stats_.corrupt_files;
+      verified_.erase(id);
+    }
+    const bool removed = std::remove(PathOf(id).c_str()) == 0;
+    spdlog::warn("cache file {} is corrupt ({} bytes, checksum or content does not match its id): {}", PathOf(id),
+                 bytes.size(), removed ? "removed" : "could not be removed");
     return std::nullopt;
   }
   return payload;
@@ -339,34 +346,72 @@ void CharacterStore::Insert(std::shared_ptr<const Entry> entry) {
 }
 
 std::pair<std::shared_ptr<const CharacterStore::Entry>, bool> CharacterStore::Put(const CharacterData& data) {
-  const std::string id = ContentId(data);
-  if (auto known = Get(id)) return {known, true};
-  auto entry = Build(id, data);  // throws Error for bad meshes; nothing is stored then
-  WriteFile(id, Serialize(data));
-  std::lock_guard lock(mutex_);
-  Insert(entry);
-  return {entry, false};
+  return Acquire(ContentId(data), &data);
 }
 
 std::shared_ptr<const CharacterStore::Entry> CharacterStore::Get(const std::string& id) {
   if (!ValidId(id)) return nullptr;
+  return Acquire(id, nullptr).first;
+}
+
+std::pair<std::shared_ptr<const CharacterStore::Entry>, bool> CharacterStore::Acquire(const std::string& id,
+                                                                                       const CharacterData* data) {
+  std::promise<std::shared_ptr<const Entry>> promise;
+  std::shared_ptr<Flight> flight;
   {
-    std::lock_guard lock(mutex_);
+    std::unique_lock lock(mutex_);
     auto it = entries_.find(id);
     if (it != entries_.end()) {
       lru_.splice(lru_.begin(), lru_, it->second.position);
       ++stats_.hits;
-      return it->second.entry;
+      return {it->second.entry, true};
     }
     ++stats_.misses;
+    if (auto other = building_.find(id); other != building_.end()) {
+      // Someone builds it now: wait for that build (it throws here too if it failed).
+      auto result = other->second->result;
+      lock.unlock();
+      auto entry = result.get();
+      if (!entry && data != nullptr) return Acquire(id, data);  // that was a Get that found no file
+      return {entry, true};
+    }
+    flight = std::make_shared<Flight>();
+    flight->result = promise.get_future().share();
+    building_[id] = flight;
   }
-  const auto payload = ReadFile(id);
-  if (!payload) return nullptr;
-  auto entry = Build(id, Deserialize(*payload));
-  std::lock_guard lock(mutex_);
-  ++stats_.rebuilds_from_disk;
-  Insert(entry);
-  return entries_.count(id) ? entries_[id].entry : entry;
+  std::shared_ptr<const Entry> entry;
+  bool known = true;
+  try {
+    if (const auto payload = ReadFile(id)) {
+      entry = Build(id, Deserialize(*payload));
+    } else if (data != nullptr) {
+      known = false;
+      entry = Build(id, *data);  // throws Error for bad meshes; nothing is stored then
+      WriteFile(id, Serialize(*data));
+    }
+  } catch (...) {
+    {
+      std::lock_guard lock(mutex_);
+      building_.erase(id);
+    }
+    promise.set_exception(std::current_exception());
+    throw;
+  }
+  bool deleted = false;
+  {
+    std::lock_guard lock(mutex_);
+    building_.erase(id);
+    deleted = flight->deleted;
+    if (entry && !deleted) {
+      if (known) ++stats_.rebuilds_from_disk;
+      Insert(entry);
+    }
+  }
+  // A delete that came while this built has removed the file already, or finds none: this build wrote it
+  // afterwards. Either way it goes.
+  if (deleted && !options_.directory.empty()) std::filesystem::remove(PathOf(id));
+  promise.set_value(entry);
+  return {entry, known};
 }
 
 std::vector<CharacterStore::Listed> CharacterStore::List() {
@@ -385,6 +430,22 @@ std::vector<CharacterStore::Listed> CharacterStore::List() {
   for (const auto& file : std::filesystem::directory_iterator(options_.directory, ec)) {
     const std::string id = file.path().stem().string();
     if (file.path().extension() != ".sbchar" || !ValidId(id) || seen.count(id) != 0) continue;
+    std::error_code stat_error;
+    const FileStamp stamp{file.file_size(stat_error), file.last_write_time(stat_error)};
+    if (stat_error) continue;
+    bool checked = false;
+    {
+      std::lock_guard lock(mutex_);
+      const auto it = verified_.find(id);
+      checked = it != verified_.end() && it->second.size == stamp.size && it->second.modified == stamp.modified;
+    }
+    if (!checked) {
+      // Checked in full once per file version, so a corrupt file is removed (and logged) here rather than
+      // listed until someone asks for it.
+      if (!ReadFile(id)) continue;
+      std::lock_guard lock(mutex_);
+      verified_[id] = stamp;
+    }
     // The name is the payload's first field: read just the header, not the meshes.
     std::ifstream in(file.path(), std::ios::binary);
     char header[sizeof(kFileMagic) + 32 + 4];
@@ -403,6 +464,11 @@ bool CharacterStore::Delete(const std::string& id) {
   bool found = false;
   {
     std::lock_guard lock(mutex_);
+    verified_.erase(id);
+    if (auto flight = building_.find(id); flight != building_.end()) {
+      flight->second->deleted = true;
+      found = true;
+    }
     auto it = entries_.find(id);
     if (it != entries_.end()) {
       stats_.bytes -= it->second.entry->bytes;

@@ -4,6 +4,8 @@
 #pragma once
 
 #include <cstdint>
+#include <filesystem>
+#include <future>
 #include <list>
 #include <memory>
 #include <mutex>
@@ -51,17 +53,22 @@ class CharacterStore {
 
   explicit CharacterStore(StoreOptions options);
 
-  // Builds (or finds) the character. Returns the entry and whether it was already known.
+  // Builds (or finds) the character. Returns the entry and whether it was already known. Concurrent Puts and
+  // Gets of one id share one build.
   std::pair<std::shared_ptr<const Entry>, bool> Put(const CharacterData& data);
-  // From memory, else from the directory (rebuilding the rig); nullptr if unknown anywhere.
+  // From memory, else from the directory (rebuilding the rig); nullptr if unknown anywhere. Concurrent calls
+  // for one cold id share one rebuild.
   std::shared_ptr<const Entry> Get(const std::string& id);
   // Built characters in memory, most recently used first, then those only in the cache directory (listed by
-  // id and name without building them: `entry` is null).
+  // id and name without building them: `entry` is null). A file is checked (checksum, id) the first time it
+  // is listed; a corrupt one is removed, logged, and not listed.
   struct Listed {
     std::string id, name;
     std::shared_ptr<const Entry> entry;
   };
   std::vector<Listed> List();
+  // Removes the character from memory and the directory. A build of it in flight (an upload, or a rebuild
+  // from the cache file) finishes for its callers but is not kept: the delete wins.
   bool Delete(const std::string& id);
   StoreStats stats() const;
 
@@ -79,6 +86,8 @@ class CharacterStore {
 
  private:
   std::shared_ptr<const Entry> Build(const std::string& id, const CharacterData& data);
+  // The one build of `id` in flight: from `data` when given (an upload), else from the cache file.
+  std::pair<std::shared_ptr<const Entry>, bool> Acquire(const std::string& id, const CharacterData* data);
   void Insert(std::shared_ptr<const Entry> entry);  // caller holds mutex_
   std::string PathOf(const std::string& id) const;
   void WriteFile(const std::string& id, const std::string& bytes) const;
@@ -92,6 +101,16 @@ class CharacterStore {
     std::list<std::string>::iterator position;
   };
   std::unordered_map<std::string, Slot> entries_;
+  struct Flight {
+    std::shared_future<std::shared_ptr<const Entry>> result;
+    bool deleted = false;  // a Delete came while it built: do not keep the result
+  };
+  std::unordered_map<std::string, std::shared_ptr<Flight>> building_;
+  struct FileStamp {
+    std::uintmax_t size = 0;
+    std::filesystem::file_time_type modified;
+  };
+  std::unordered_map<std::string, FileStamp> verified_;  // cache files List has checked
   StoreStats stats_;
 };
 

@@ -3,11 +3,14 @@
 #include <fmt/format.h>
 
 #include <Eigen/Geometry>
+#include <cmath>
 #include <cstring>
+#include <iterator>
 #include <sstream>
 #include <unordered_set>
 
 #include "springblend/error.h"
+#include "status.h"
 
 namespace springblend::server {
 namespace {
@@ -19,19 +22,48 @@ Eigen::Vector3d ToVector(const v1::Vec3& v) { return {v.x(), v.y(), v.z()}; }
 }  // namespace
 
 void UploadAssembler::Fail(const std::string& what, bool limit) {
-  over_limit_ = limit;
+  if (limit) throw LimitError(what);
   Invalid(what);
 }
 
-void UploadAssembler::Add(const v1::UploadChunk& chunk) {
-  bytes_ += static_cast<std::int64_t>(chunk.ByteSizeLong());
+void CheckId(const std::string& id, const char* field) {
+  if (CharacterStore::ValidId(id)) return;
+  Invalid(fmt::format("{} '{}'{} is not a character id: ids are 64 lowercase hex digits (SHA-256), as "
+                      "UploadCharacter returns them",
+                      field, Printable(id, 16), id.size() > 16 ? fmt::format(" ({} bytes)", id.size()) : ""));
+}
+
+std::string Printable(std::string_view text, size_t max) {
+  std::string out;
+  for (size_t i = 0; i < text.size(); ++i) {
+    if (out.size() >= max) {
+      out += "...";
+      break;
+    }
+    const unsigned char c = static_cast<unsigned char>(text[i]);
+    if (c == '\\') {
+      out += "\\\\";
+    } else if (c < 0x20 || c == 0x7f) {
+      out += fmt::format("\\x{:02x}", c);
+    } else {
+      out += static_cast<char>(c);
+    }
+  }
+  return out;
+}
+
+void UploadAssembler::Add(v1::UploadChunk& chunk) {
+  const std::int64_t size = static_cast<std::int64_t>(chunk.ByteSizeLong());
+  bytes_ += size;
   if (bytes_ > limits_.max_upload_bytes) {
     Fail(fmt::format("the upload is over the limit of {} bytes (--max-upload-bytes)", limits_.max_upload_bytes), true);
   }
+  // Held twice at most: as received, and while Finish assembles the arrays.
+  memory_.Grow(2 * size);
   if (chunk.has_header()) {
     if (have_header_) Fail("a second upload header; send exactly one, first");
     const v1::UploadHeader& h = chunk.header();
-    if (h.name().size() > 256) Fail("header.name is longer than 256 bytes");
+    if (h.name().size() > limits_.max_name_bytes) Fail(fmt::format("header.name is longer than {} bytes", limits_.max_name_bytes));
     if (h.vertex_count() < 3) Fail(fmt::format("header.vertex_count = {}: a mesh needs at least 3 vertices", h.vertex_count()));
     if (h.vertex_count() > static_cast<std::uint32_t>(limits_.max_vertices)) {
       Fail(fmt::format("header.vertex_count = {} is over the limit of {} (--max-vertices)", h.vertex_count(), limits_.max_vertices), true);
@@ -48,12 +80,18 @@ void UploadAssembler::Add(const v1::UploadChunk& chunk) {
     }
     std::unordered_set<std::string> names;
     for (int t = 0; t < h.target_names_size(); ++t) {
-      if (h.target_names(t).empty()) Fail(fmt::format("header.target_names[{}] is empty", t));
-      if (!names.insert(h.target_names(t)).second) Fail(fmt::format("header.target_names[{}] '{}' is used twice", t, h.target_names(t)));
-      data_.target_names.push_back(h.target_names(t));
+      const std::string& name = h.target_names(t);
+      if (name.empty()) Fail(fmt::format("header.target_names[{}] is empty", t));
+      if (name.size() > limits_.max_name_bytes) {
+        Fail(fmt::format("header.target_names[{}] '{}' is {} bytes, over the limit of {}", t, Printable(name, 32),
+                         name.size(), limits_.max_name_bytes));
+      }
+      if (!names.insert(name).second) Fail(fmt::format("header.target_names[{}] '{}' is used twice", t, Printable(name)));
+      data_.target_names.push_back(name);
     }
     data_.name = h.name();
     const v1::BuildOptions& o = h.options();
+    if (o.fixed_vertices_size() > static_cast<int>(h.vertex_count())) Fail("options.fixed_vertices has more entries than vertices");
     for (auto v : o.fixed_vertices()) {
       if (v >= h.vertex_count()) Fail(fmt::format("options.fixed_vertices: {} is not a vertex (there are {})", v, h.vertex_count()));
       data_.options.fixed_vertices.push_back(static_cast<int>(v));
@@ -63,63 +101,86 @@ void UploadAssembler::Add(const v1::UploadChunk& chunk) {
     data_.options.anchor = !o.no_anchor();
     if (o.bending_stiffness() != 0.0) data_.options.bending_stiffness = o.bending_stiffness();
     data_.options.Validate();
-    data_.faces.resize(h.face_count(), 3);
-    data_.shapes.assign(static_cast<size_t>(h.target_names_size()) + 1, Points(h.vertex_count(), 3));
-    filled_.assign(data_.shapes.size() + 1, {});
-    filled_[0].assign(h.face_count(), 0);
-    for (size_t s = 1; s < filled_.size(); ++s) filled_[s].assign(h.vertex_count(), 0);
+    vertex_count_ = h.vertex_count();
+    face_count_ = h.face_count();
+    covered_.assign(static_cast<size_t>(h.target_names_size()) + 2, {});
     have_header_ = true;
     return;
   }
   if (!chunk.has_piece()) Fail("an upload chunk with neither header nor piece");
   if (!have_header_) Fail("a mesh piece before the header; send the header first");
-  const v1::MeshPiece& p = chunk.piece();
-  const std::string& bytes = p.data();
+  v1::MeshPiece& p = *chunk.mutable_piece();
   size_t array = 0;
   size_t element_bytes = 1;  // every branch below sets these or throws
-  char* target = nullptr;
   size_t elements = 0;
   if (p.kind() == v1::MeshPiece::FACES) {
     array = 0;
     element_bytes = 12;
-    elements = filled_[0].size();
-    target = reinterpret_cast<char*>(data_.faces.data());
+    elements = face_count_;
   } else if (p.kind() == v1::MeshPiece::POSITIONS) {
-    if (p.shape() >= data_.shapes.size()) {
-      Fail(fmt::format("piece.shape = {} but there are {} shapes (rest + targets)", p.shape(), data_.shapes.size()));
+    if (p.shape() >= covered_.size() - 1) {
+      Fail(fmt::format("piece.shape = {} but there are {} shapes (rest + targets)", p.shape(), covered_.size() - 1));
     }
     array = p.shape() + 1;
     element_bytes = 24;
-    elements = filled_[array].size();
-    target = reinterpret_cast<char*>(data_.shapes[p.shape()].data());
+    elements = vertex_count_;
   } else {
     Fail("piece.kind must be FACES or POSITIONS");
   }
-  if (bytes.size() % element_bytes != 0) {
-    Fail(fmt::format("a {} piece has {} bytes, not a multiple of {}", p.kind() == v1::MeshPiece::FACES ? "FACES" : "POSITIONS", bytes.size(), element_bytes));
+  const size_t byte_count = p.data().size();
+  if (byte_count % element_bytes != 0) {
+    Fail(fmt::format("a {} piece has {} bytes, not a multiple of {}", p.kind() == v1::MeshPiece::FACES ? "FACES" : "POSITIONS", byte_count, element_bytes));
   }
-  const size_t count = bytes.size() / element_bytes;
+  const size_t count = byte_count / element_bytes;
   if (p.offset() > elements || count > elements - p.offset()) {
     Fail(fmt::format("a piece covers elements {}..{} but the array has {}", p.offset(), p.offset() + count, elements));
   }
-  for (size_t i = p.offset(); i < p.offset() + count; ++i) {
-    if (filled_[array][i]) Fail(fmt::format("pieces overlap at element {}", i));
-    filled_[array][i] = 1;
+  if (count == 0) return;
+  // Ranges kept disjoint and merged with their neighbours, so a mesh sent in order is one range.
+  std::map<size_t, size_t>& ranges = covered_[array];
+  size_t first = p.offset(), end = p.offset() + count;
+  auto next = ranges.upper_bound(first);
+  if (next != ranges.begin()) {
+    auto previous = std::prev(next);
+    if (previous->second > first) Fail(fmt::format("pieces overlap at element {}", first));
+    if (previous->second == first) {
+      first = previous->first;
+      ranges.erase(previous);
+    }
   }
-  // Row-major Eigen storage matches the wire's packed triples (both little-endian on our targets).
-  std::memcpy(target + p.offset() * element_bytes, bytes.data(), bytes.size());
+  if (next != ranges.end()) {
+    if (next->first < end) Fail(fmt::format("pieces overlap at element {}", next->first));
+    if (next->first == end) {
+      end = next->second;
+      ranges.erase(next);
+    }
+  }
+  ranges[first] = end;
+  pieces_.push_back({array, static_cast<size_t>(p.offset()), std::move(*p.mutable_data())});
 }
 
 CharacterData UploadAssembler::Finish() {
   if (!have_header_) Fail("the upload ended without a header");
-  for (size_t a = 0; a < filled_.size(); ++a) {
-    for (size_t i = 0; i < filled_[a].size(); ++i) {
-      if (!filled_[a][i]) {
-        Fail(a == 0 ? fmt::format("the upload ended with face {} missing", i)
-                    : fmt::format("the upload ended with vertex {} of shape {} missing", i, a - 1));
-      }
+  for (size_t a = 0; a < covered_.size(); ++a) {
+    const size_t elements = a == 0 ? face_count_ : vertex_count_;
+    const auto& ranges = covered_[a];
+    const size_t missing = ranges.empty() || ranges.begin()->first != 0 ? 0 : ranges.begin()->second;
+    if (missing < elements) {
+      Fail(a == 0 ? fmt::format("the upload ended with face {} missing", missing)
+                  : fmt::format("the upload ended with vertex {} of shape {} missing", missing, a - 1));
     }
   }
+  data_.faces.resize(face_count_, 3);
+  data_.shapes.assign(covered_.size() - 1, Points(vertex_count_, 3));
+  for (Piece& piece : pieces_) {
+    // Row-major Eigen storage matches the wire's packed triples (both little-endian on our targets).
+    char* target = piece.array == 0 ? reinterpret_cast<char*>(data_.faces.data())
+                                    : reinterpret_cast<char*>(data_.shapes[piece.array - 1].data());
+    const size_t element_bytes = piece.array == 0 ? 12 : 24;
+    std::memcpy(target + piece.offset * element_bytes, piece.bytes.data(), piece.bytes.size());
+    std::string().swap(piece.bytes);
+  }
+  pieces_.clear();
   return std::move(data_);
 }
 
@@ -150,41 +211,45 @@ v1::Character ToProto(const CharacterStore::Entry& entry, bool cache_hit) {
   return c;
 }
 
-SolveJob ToSolveJob(const v1::SolveRequest& request, const Rig& rig, const Limits& limits) {
-  SolveJob job;
-  if (request.frames_size() == 0) Invalid("frames is empty: send at least one frame");
-  if (request.frames_size() > limits.max_frames) {
-    throw Error(ErrorCode::kInvalidInput, fmt::format("{} frames is over the limit of {} (--max-frames)", request.frames_size(), limits.max_frames));
-  }
-  const v1::SolveOptions& o = request.options();
-  if (o.residual_tolerance() != 0.0) job.options.residual_tolerance = o.residual_tolerance();
-  if (o.max_iterations() != 0) job.options.max_iterations = static_cast<int>(std::min<std::uint32_t>(o.max_iterations(), 1'000'000));
-  job.options.linear = o.linear();
-  job.with_normals = o.with_normals();
+void ToOptions(const v1::SolveOptions& o, SolveJob* job) {
+  if (o.residual_tolerance() != 0.0) job->options.residual_tolerance = o.residual_tolerance();
+  if (o.max_iterations() != 0) job->options.max_iterations = static_cast<int>(std::min<std::uint32_t>(o.max_iterations(), 1'000'000));
+  job->options.linear = o.linear();
+  job->with_normals = o.with_normals();
   try {
-    job.options.Validate();
+    job->options.Validate();
   } catch (const Error& e) {
     Invalid(std::string("options: ") + e.what());
   }
-  for (int i = 0; i < request.colliders_size(); ++i) {
-    const v1::Collider& c = request.colliders(i);
+}
+
+std::vector<Collider> ToColliders(const google::protobuf::RepeatedPtrField<v1::Collider>& colliders,
+                                  const Limits& limits, const std::function<bool()>& stopped) {
+  if (colliders.size() > limits.max_colliders) {
+    Invalid(fmt::format("{} colliders is over the limit of {}", colliders.size(), limits.max_colliders));
+  }
+  std::vector<Collider> out;
+  for (int i = 0; i < colliders.size(); ++i) {
+    if (stopped && stopped()) throw CancelledError(fmt::format("stopped while converting colliders[{}]", i));
+    const v1::Collider& c = colliders[i];
     try {
       switch (c.shape_case()) {
         case v1::Collider::kSphere:
-          job.colliders.push_back(Collider::Sphere(ToVector(c.sphere().center()), c.sphere().radius()));
+          out.push_back(Collider::Sphere(ToVector(c.sphere().center()), c.sphere().radius()));
           break;
         case v1::Collider::kCapsule:
-          job.colliders.push_back(Collider::Capsule(ToVector(c.capsule().a()), ToVector(c.capsule().b()), c.capsule().radius()));
+          out.push_back(Collider::Capsule(ToVector(c.capsule().a()), ToVector(c.capsule().b()), c.capsule().radius()));
           break;
         case v1::Collider::kBox:
-          job.colliders.push_back(Collider::Box(ToVector(c.box().center()), ToVector(c.box().half_extents())));
+          out.push_back(Collider::Box(ToVector(c.box().center()), ToVector(c.box().half_extents())));
           break;
         case v1::Collider::kPlane:
-          job.colliders.push_back(Collider::Plane(ToVector(c.plane().point()), ToVector(c.plane().normal())));
+          out.push_back(Collider::Plane(ToVector(c.plane().point()), ToVector(c.plane().normal())));
           break;
         case v1::Collider::kMeshObj: {
-          TriangleMesh mesh = LoadMeshFromText(c.mesh_obj(), "obj", fmt::format("colliders[{}].mesh_obj", i));
-          job.colliders.push_back(Collider::Mesh(mesh));
+          const TriangleMesh mesh = LoadMeshFromText(c.mesh_obj(), "obj", fmt::format("colliders[{}].mesh_obj", i),
+                                                     limits.collider_text);
+          out.push_back(Collider::Mesh(mesh, limits.collider));
           break;
         }
         case v1::Collider::SHAPE_NOT_SET:
@@ -194,34 +259,81 @@ SolveJob ToSolveJob(const v1::SolveRequest& request, const Rig& rig, const Limit
       Invalid(fmt::format("colliders[{}]: {}", i, e.what()));
     }
   }
+  return out;
+}
+
+Frame ToFrame(const v1::FrameRequest& in, const Rig& rig, size_t colliders, size_t f, const Limits& limits) {
+  Frame frame;
+  frame.weights.assign(in.weights().begin(), in.weights().end());
+  for (size_t t = 0; t < frame.weights.size(); ++t) {
+    if (std::isfinite(frame.weights[t]) && std::abs(frame.weights[t]) > limits.max_weight) {
+      Invalid(fmt::format("frames[{}].weights[{}] = {} is beyond +-{}: the blended shape would overflow", f, t,
+                          frame.weights[t], limits.max_weight));
+    }
+  }
+  if (in.collider_transforms_size() > static_cast<int>(colliders)) {
+    Invalid(fmt::format("frames[{}]: collider_transforms has {} entries but there are {} colliders", f,
+                        in.collider_transforms_size(), colliders));
+  }
+  for (const auto& t : in.collider_transforms()) {
+    RigidTransform motion;
+    motion.translation = ToVector(t.translation());
+    if (t.qw() != 0.0 || t.qx() != 0.0 || t.qy() != 0.0 || t.qz() != 0.0) {
+      motion.rotation = Eigen::Quaterniond(t.qw(), t.qx(), t.qy(), t.qz());
+      if (!(motion.rotation.norm() > 0.0) || !std::isfinite(motion.rotation.norm()) || !motion.rotation.coeffs().allFinite()) {
+        Invalid(fmt::format("frames[{}].collider_transforms: not a finite quaternion", f));
+      }
+      motion.rotation.normalize();
+    }
+    frame.collider_transforms.push_back(motion);
+  }
+  if (in.pins_size() > rig.num_surface_vertices()) {
+    Invalid(fmt::format("frames[{}].pins has {} entries, more than the mesh's {} vertices", f, in.pins_size(), rig.num_surface_vertices()));
+  }
+  for (const auto& p : in.pins()) {
+    if (p.vertex() >= static_cast<std::uint32_t>(rig.num_surface_vertices())) {
+      Invalid(fmt::format("frames[{}].pins: vertex {} is not a vertex of the mesh (it has {})", f, p.vertex(), rig.num_surface_vertices()));
+    }
+    frame.pins.push_back({static_cast<int>(p.vertex()), ToVector(p.position())});
+  }
+  try {
+    ValidateFrame(rig, frame, colliders);
+  } catch (const Error& e) {
+    Invalid(fmt::format("frames[{}]: {}", f, e.what()));
+  }
+  return frame;
+}
+
+void CheckSolved(const Points& positions, size_t index) {
+  if (!positions.allFinite()) {
+    throw Error(ErrorCode::kNumerical,
+                fmt::format("frame {} produced non-finite positions (weights or pins too large for double "
+                            "precision); nothing was returned for it",
+                            index));
+  }
+}
+
+std::int64_t StreamBytes(const google::protobuf::RepeatedPtrField<v1::Collider>& colliders, const Rig& rig) {
+  // A mesh collider holds its text's worth of vertices and faces several times over (our arrays, CGAL's
+  // half-edge mesh, the AABB tree and its distance-query tree): about 16 bytes kept per byte of OBJ text.
+  std::int64_t bytes = 64 << 10;
+  for (const auto& c : colliders) bytes += 16 * static_cast<std::int64_t>(c.mesh_obj().size());
+  // The solver's state: positions, forces, the factorization (several copies of a #V x 3 array, and more).
+  return bytes + 512LL * rig.num_vertices();
+}
+
+SolveJob ToSolveJob(const v1::SolveRequest& request, const Rig& rig, const Limits& limits,
+                    const std::function<bool()>& stopped) {
+  SolveJob job;
+  if (request.frames_size() == 0) Invalid("frames is empty: send at least one frame");
+  if (request.frames_size() > limits.max_frames) {
+    throw LimitError(fmt::format("{} frames is over the limit of {} (--max-frames)", request.frames_size(), limits.max_frames));
+  }
+  ToOptions(request.options(), &job);
+  job.colliders = ToColliders(request.colliders(), limits, stopped);
   for (int f = 0; f < request.frames_size(); ++f) {
-    const v1::FrameRequest& in = request.frames(f);
-    Frame frame;
-    frame.weights.assign(in.weights().begin(), in.weights().end());
-    for (const auto& t : in.collider_transforms()) {
-      RigidTransform motion;
-      motion.translation = ToVector(t.translation());
-      if (t.qw() != 0.0 || t.qx() != 0.0 || t.qy() != 0.0 || t.qz() != 0.0) {
-        motion.rotation = Eigen::Quaterniond(t.qw(), t.qx(), t.qy(), t.qz());
-        if (!(motion.rotation.norm() > 0.0) || !motion.rotation.coeffs().allFinite()) {
-          Invalid(fmt::format("frames[{}].collider_transforms: not a finite quaternion", f));
-        }
-        motion.rotation.normalize();
-      }
-      frame.collider_transforms.push_back(motion);
-    }
-    for (const auto& p : in.pins()) {
-      if (p.vertex() >= static_cast<std::uint32_t>(rig.num_surface_vertices())) {
-        Invalid(fmt::format("frames[{}].pins: vertex {} is not a vertex of the mesh (it has {})", f, p.vertex(), rig.num_surface_vertices()));
-      }
-      frame.pins.push_back({static_cast<int>(p.vertex()), ToVector(p.position())});
-    }
-    try {
-      ValidateFrame(rig, frame, job.colliders.size());
-    } catch (const Error& e) {
-      Invalid(fmt::format("frames[{}]: {}", f, e.what()));
-    }
-    job.frames.push_back(std::move(frame));
+    if (f % 1024 == 0 && stopped && stopped()) throw CancelledError(fmt::format("stopped while reading frames[{}]", f));
+    job.frames.push_back(ToFrame(request.frames(f), rig, job.colliders.size(), static_cast<size_t>(f), limits));
   }
   return job;
 }

@@ -2,10 +2,15 @@
 #pragma once
 
 #include <cstdint>
+#include <functional>
+#include <map>
 #include <string>
+#include <string_view>
 #include <vector>
 
 #include "character_store.h"
+#include "memory_budget.h"
+#include "springblend/collider.h"
 #include "springblend/solve.h"
 #include "springblend/v1/springblend.pb.h"
 
@@ -16,28 +21,48 @@ struct Limits {
   int max_vertices = 2'000'000;
   int max_targets = 1000;
   int max_frames = 100'000;
+  size_t max_name_bytes = 256;  // a character's name and each target name
+  int max_colliders = 64;
+  double max_weight = 1e3;      // |weight| of one target in a frame; larger ones overflow the solve
+  // A mesh collider's OBJ text (checked in a linear pass before OpenMesh) and the mesh (before CGAL).
+  MeshTextLimits collider_text{100'000, 200'000, 256, 256};
+  MeshColliderLimits collider{100'000, 200'000, 256};
 };
 
-// Collects an upload's chunks, checking each against the header and the limits as it arrives.
+// Collects an upload's chunks, checking each against the header and the limits as it arrives. Memory grows as
+// pieces arrive (counted in `budget`), never from what the header declares.
 class UploadAssembler {
  public:
-  explicit UploadAssembler(Limits limits) : limits_(limits) {}
-  // Throws Error(kInvalidInput) naming the problem; a limit exceeded says so ("over the limit").
-  void Add(const v1::UploadChunk& chunk);
+  explicit UploadAssembler(Limits limits, MemoryBudget* budget = nullptr) : limits_(limits), memory_(budget) {}
+  // Throws Error(kInvalidInput) naming the problem, LimitError over a limit. Takes the piece's bytes.
+  void Add(v1::UploadChunk& chunk);
   // Throws if a mesh is incomplete.
   CharacterData Finish();
-  bool over_limit() const { return over_limit_; }
 
  private:
-  void Fail(const std::string& what, bool limit = false);
+  [[noreturn]] void Fail(const std::string& what, bool limit = false);
 
   Limits limits_;
+  Reservation memory_;
   bool have_header_ = false;
-  bool over_limit_ = false;
   std::int64_t bytes_ = 0;
   CharacterData data_;
-  std::vector<std::vector<char>> filled_;  // per array (faces, then shapes): which elements arrived
+  std::uint32_t vertex_count_ = 0, face_count_ = 0;
+  struct Piece {
+    size_t array;  // 0 faces, 1 + s shape s
+    size_t offset;
+    std::string bytes;
+  };
+  std::vector<Piece> pieces_;
+  std::vector<std::map<size_t, size_t>> covered_;  // per array: disjoint [first, end) ranges that arrived
 };
+
+// A character id from a request, checked: 64 lowercase hex digits, else Error(kInvalidInput) quoting at most
+// its start.
+void CheckId(const std::string& id, const char* field);
+// Text from a client made safe for a log line or a message: control bytes and backslashes escaped, cut to
+// `max` bytes.
+std::string Printable(std::string_view text, size_t max = 64);
 
 v1::Character ToProto(const CharacterStore::Entry& entry, bool cache_hit);
 
@@ -48,7 +73,19 @@ struct SolveJob {
   SolveOptions options;
   bool with_normals = false;
 };
-SolveJob ToSolveJob(const v1::SolveRequest& request, const Rig& rig, const Limits& limits);
+SolveJob ToSolveJob(const v1::SolveRequest& request, const Rig& rig, const Limits& limits,
+                    const std::function<bool()>& stopped = {});
+// The parts of it, for Interactive (colliders and options once at the start, then each frame by itself).
+// `stopped`, when given, is asked before each collider and each frame: true throws CancelledError.
+std::vector<Collider> ToColliders(const google::protobuf::RepeatedPtrField<v1::Collider>& colliders,
+                                  const Limits& limits, const std::function<bool()>& stopped = {});
+void ToOptions(const v1::SolveOptions& options, SolveJob* job);
+// `index` names the frame in messages: frames[index].
+Frame ToFrame(const v1::FrameRequest& request, const Rig& rig, size_t colliders, size_t index, const Limits& limits);
+// Throws Error(kNumerical) naming the frame when a solve returned non-finite positions.
+void CheckSolved(const Points& positions, size_t index);
+// What a stream with these colliders holds while open (its colliders and solver state), for the memory budget.
+std::int64_t StreamBytes(const google::protobuf::RepeatedPtrField<v1::Collider>& colliders, const Rig& rig);
 
 v1::SolvedFrame ToProto(int index, const Points& positions, const Faces& faces, const SolveSummary& summary,
                         bool with_normals, const std::string& served_by);

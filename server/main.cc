@@ -38,6 +38,9 @@ int main(int argc, char** argv) {
   int queue = 64;
   std::int64_t memory_mb = 4096;
   Limits limits;
+  std::int64_t request_memory_mb = 2048;
+  double stall_seconds = 60, idle_seconds = 600;
+  int metadata_workers = 2;
   std::string replica;
   int drain_seconds = 30;
   std::string metrics_listen;
@@ -53,7 +56,22 @@ int main(int argc, char** argv) {
   app.add_option("--memory-budget-mb", memory_mb, "memory for built characters; least recently used go first")->check(CLI::Range(1, 1 << 20));
   app.add_option("--max-upload-bytes", limits.max_upload_bytes, "largest upload");
   app.add_option("--max-vertices", limits.max_vertices, "most vertices in a character");
-  app.add_option("--max-frames", limits.max_frames, "most frames in one solve request");
+  app.add_option("--max-frames", limits.max_frames, "most frames in one solve request (more: RESOURCE_EXHAUSTED)");
+  app.add_option("--max-collider-faces", limits.collider.max_faces,
+                 "most triangles (and vertices) in one mesh collider; checked before the mesh is built")
+      ->check(CLI::Range(4, 10'000'000));
+  app.add_option("--request-memory-mb", request_memory_mb,
+                 "memory for uploads in progress and open Solve/Interactive streams together; over it a new one "
+                 "gets RESOURCE_EXHAUSTED")
+      ->check(CLI::Range(1, 1 << 20));
+  app.add_option("--stall-seconds", stall_seconds,
+                 "cancel a stream whose client has not read a sent frame (or sent its next upload piece) for this long")
+      ->check(CLI::Range(0.05, 1e6));
+  app.add_option("--idle-seconds", idle_seconds, "cancel an Interactive session with no message for this long")
+      ->check(CLI::Range(0.05, 1e7));
+  app.add_option("--metadata-workers", metadata_workers,
+                 "threads for GetCharacter, ListCharacters and DeleteCharacter, apart from the solver threads")
+      ->check(CLI::Range(1, 64));
   app.add_option("--replica-name", replica, "name reported in each frame's served_by (default: host name)");
   app.add_option("--drain-seconds", drain_seconds, "on SIGTERM, how long in-flight streams may finish");
   app.add_option("--metrics", metrics_listen, "serve Prometheus metrics at http://ADDRESS:PORT/metrics (off when empty)");
@@ -102,9 +120,16 @@ int main(int argc, char** argv) {
     const CharacterStore::Cleanup cleanup = store.RemoveStaleTemporaries();
     spdlog::info("cache {}: removed {} stale temporary files{}", cache_dir, cleanup.removed,
                  cleanup.in_use ? fmt::format(" ({} in use by another writer, kept)", cleanup.in_use) : "");
+    limits.collider.max_vertices = limits.collider.max_faces;
+    limits.collider_text.max_faces = limits.collider.max_faces;
+    limits.collider_text.max_vertices = limits.collider.max_faces;
     SolverPool pool(workers, queue);
+    SolverPool metadata_pool(metadata_workers, queue);
     Metrics metrics;
-    ServiceContext context{store, pool, limits, replica, metrics, auth};
+    MemoryBudget memory(request_memory_mb << 20);
+    Watchdog watchdog({std::chrono::milliseconds(static_cast<std::int64_t>(stall_seconds * 1000)),
+                       std::chrono::milliseconds(static_cast<std::int64_t>(idle_seconds * 1000))});
+    ServiceContext context{store, pool, metadata_pool, limits, replica, metrics, auth, memory, watchdog};
     std::unique_ptr<MetricsEndpoint> metrics_endpoint;
     if (!metrics_listen.empty()) {
       metrics_endpoint = std::make_unique<MetricsEndpoint>(metrics_listen, [&] {
@@ -120,9 +145,10 @@ int main(int argc, char** argv) {
               "# TYPE springblend_cache_characters gauge\nspringblend_cache_characters {}\n"
               "# TYPE springblend_queue_depth gauge\nspringblend_queue_depth {}\n"
               "# TYPE springblend_workers_busy gauge\nspringblend_workers_busy {}\n"
-              "# TYPE springblend_workers gauge\nspringblend_workers {}\n",
+              "# TYPE springblend_workers gauge\nspringblend_workers {}\n"
+              "# TYPE springblend_request_memory_bytes gauge\nspringblend_request_memory_bytes {}\n",
               s.hits, s.misses, s.evictions, s.rebuilds_from_disk, s.corrupt_files, s.bytes, s.characters,
-              pool.queue_depth(), pool.busy(), pool.threads());
+              pool.queue_depth(), pool.busy(), pool.threads(), memory.used());
         });
       });
       std::cout << "springblend-server metrics on http://" << metrics_listen.substr(0, metrics_listen.rfind(':'))
@@ -139,6 +165,9 @@ int main(int argc, char** argv) {
     builder.RegisterService(&characters);
     builder.RegisterService(&solves);
     builder.SetMaxReceiveMessageSize(64 << 20);
+    std::vector<std::unique_ptr<grpc::experimental::ServerInterceptorFactoryInterface>> interceptors;
+    interceptors.push_back(MakeReflectionGuard(auth));
+    builder.experimental().SetInterceptorCreators(std::move(interceptors));
     std::unique_ptr<grpc::Server> server = builder.BuildAndStart();
     if (!server || port == 0) {
       std::cerr << "springblend-server: cannot listen on " << listen << "\n";

@@ -2,10 +2,14 @@
 
 #include <arpa/inet.h>
 #include <netinet/in.h>
+#include <fcntl.h>
+#include <poll.h>
 #include <sys/socket.h>
 #include <unistd.h>
 
 #include <cerrno>
+#include <chrono>
+#include <vector>
 #include <cstring>
 #include <fmt/format.h>
 
@@ -105,19 +109,21 @@ MetricsEndpoint::~MetricsEndpoint() {
   if (thread_.joinable()) thread_.join();
 }
 
+// One thread serves every connection with poll(): a connection that sends nothing (or only part of a request)
+// waits in the poll set, never in front of a scraper; it is dropped after 2 s, and the oldest is dropped when
+// kMaxConnections are open. Answers are small (a few KiB) and sent with a 1 s send timeout.
 void MetricsEndpoint::Serve() {
-  while (!stopping_) {
-    const int client = ::accept4(socket_, nullptr, nullptr, SOCK_CLOEXEC);
-    if (client < 0) {
-      if (stopping_) return;
-      continue;
-    }
-    timeval timeout{2, 0};  // a scraper that sends nothing is dropped
-    setsockopt(client, SOL_SOCKET, SO_RCVTIMEO, &timeout, sizeof(timeout));
-    char request[1024];
-    const ssize_t n = ::recv(client, request, sizeof(request) - 1, 0);
+  constexpr size_t kMaxConnections = 64;
+  constexpr auto kRequestTimeout = std::chrono::seconds(2);
+  struct Connection {
+    int fd;
+    std::chrono::steady_clock::time_point deadline;
+    std::string request;
+  };
+  std::vector<Connection> connections;
+  const auto respond = [&](Connection& c) {
     std::string response;
-    if (n > 0 && std::string(request, static_cast<size_t>(n)).rfind("GET /metrics", 0) == 0) {
+    if (c.request.rfind("GET /metrics", 0) == 0) {
       const std::string body = render_();
       response = fmt::format("HTTP/1.0 200 OK\r\nContent-Type: text/plain; version=0.0.4; charset=utf-8\r\n"
                              "Content-Length: {}\r\nConnection: close\r\n\r\n{}",
@@ -125,14 +131,59 @@ void MetricsEndpoint::Serve() {
     } else {
       response = "HTTP/1.0 404 Not Found\r\nContent-Length: 0\r\nConnection: close\r\n\r\n";
     }
+    ::fcntl(c.fd, F_SETFL, ::fcntl(c.fd, F_GETFL) & ~O_NONBLOCK);
+    timeval timeout{1, 0};
+    setsockopt(c.fd, SOL_SOCKET, SO_SNDTIMEO, &timeout, sizeof(timeout));
     size_t sent = 0;
     while (sent < response.size()) {
-      const ssize_t m = ::send(client, response.data() + sent, response.size() - sent, MSG_NOSIGNAL);
+      const ssize_t m = ::send(c.fd, response.data() + sent, response.size() - sent, MSG_NOSIGNAL);
       if (m <= 0) break;
       sent += static_cast<size_t>(m);
     }
-    ::close(client);
+  };
+  while (!stopping_) {
+    std::vector<pollfd> polled{{socket_, POLLIN, 0}};
+    for (const auto& c : connections) polled.push_back({c.fd, POLLIN, 0});
+    ::poll(polled.data(), polled.size(), 200);
+    if (stopping_) break;
+    const auto now = std::chrono::steady_clock::now();
+    std::vector<Connection> open;
+    for (size_t i = 0; i < connections.size(); ++i) {
+      Connection& c = connections[i];
+      bool keep = now < c.deadline;
+      if (keep && (polled[i + 1].revents & (POLLIN | POLLHUP | POLLERR)) != 0) {
+        char buffer[1024];
+        const ssize_t n = ::recv(c.fd, buffer, sizeof(buffer), MSG_DONTWAIT);
+        if (n <= 0) {
+          keep = false;
+        } else {
+          c.request.append(buffer, static_cast<size_t>(n));
+          // The request line is all we look at; answer once it is complete (or the request is oversized).
+          if (c.request.find('\n') != std::string::npos || c.request.size() >= 4096) {
+            respond(c);
+            keep = false;
+          }
+        }
+      }
+      if (keep) {
+        open.push_back(std::move(c));
+      } else {
+        ::close(c.fd);
+      }
+    }
+    connections = std::move(open);
+    if ((polled[0].revents & POLLIN) != 0) {
+      const int client = ::accept4(socket_, nullptr, nullptr, SOCK_CLOEXEC | SOCK_NONBLOCK);
+      if (client >= 0) {
+        if (connections.size() >= kMaxConnections) {
+          ::close(connections.front().fd);
+          connections.erase(connections.begin());
+        }
+        connections.push_back({client, now + kRequestTimeout, {}});
+      }
+    }
   }
+  for (const auto& c : connections) ::close(c.fd);
 }
 
 }  // namespace springblend::server

@@ -82,9 +82,13 @@ void TokenAuthenticator::AddFile(const std::string& path) {
 }
 
 AuthVerdict TokenAuthenticator::Check(const grpc::ServerContextBase& call, Access needed) const {
+  return Check(call.client_metadata(), needed);
+}
+
+AuthVerdict TokenAuthenticator::Check(const std::multimap<grpc::string_ref, grpc::string_ref>& metadata,
+                                      Access needed) const {
   using Kind = AuthVerdict::Kind;
   if (tokens_.empty()) return {};
-  const auto& metadata = call.client_metadata();
   const auto header = metadata.find(kAuthorizationHeader);
   if (header == metadata.end()) {
     return {Kind::kMissing, "this server needs a token: send the metadata header 'authorization: Bearer TOKEN'"};
@@ -100,6 +104,44 @@ AuthVerdict TokenAuthenticator::Check(const grpc::ServerContextBase& call, Acces
     return {Kind::kForbidden, std::string("this token may not ") + Describe(needed) + "; it needs the full role"};
   }
   return {};
+}
+
+namespace {
+
+// Cancels a reflection call at once when its metadata carries no accepted token.
+class ReflectionGuard final : public grpc::experimental::Interceptor {
+ public:
+  ReflectionGuard(grpc::experimental::ServerRpcInfo* info, const TokenAuthenticator& auth) : info_(info), auth_(auth) {}
+  void Intercept(grpc::experimental::InterceptorBatchMethods* methods) override {
+    if (methods->QueryInterceptionHookPoint(grpc::experimental::InterceptionHookPoints::POST_RECV_INITIAL_METADATA)) {
+      const auto* metadata = methods->GetRecvInitialMetadata();
+      if (metadata == nullptr || !auth_.Check(*metadata, Access::kRead).allowed()) info_->server_context()->TryCancel();
+    }
+    methods->Proceed();
+  }
+
+ private:
+  grpc::experimental::ServerRpcInfo* info_;
+  const TokenAuthenticator& auth_;
+};
+
+class ReflectionGuardFactory final : public grpc::experimental::ServerInterceptorFactoryInterface {
+ public:
+  explicit ReflectionGuardFactory(const TokenAuthenticator& auth) : auth_(auth) {}
+  grpc::experimental::Interceptor* CreateServerInterceptor(grpc::experimental::ServerRpcInfo* info) override {
+    if (!auth_.enabled() || std::string_view(info->method()).rfind("/grpc.reflection.", 0) != 0) return nullptr;
+    return new ReflectionGuard(info, auth_);
+  }
+
+ private:
+  const TokenAuthenticator& auth_;
+};
+
+}  // namespace
+
+std::unique_ptr<grpc::experimental::ServerInterceptorFactoryInterface> MakeReflectionGuard(
+    const TokenAuthenticator& auth) {
+  return std::make_unique<ReflectionGuardFactory>(auth);
 }
 
 }  // namespace springblend::server

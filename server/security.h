@@ -5,6 +5,7 @@
 
 #include <grpcpp/security/server_credentials.h>
 #include <grpcpp/server_context.h>
+#include <grpcpp/support/server_interceptor.h>
 
 #include <map>
 #include <memory>
@@ -53,10 +54,16 @@ class TokenAuthenticator {
   size_t size() const { return tokens_.size(); }
 
   AuthVerdict Check(const grpc::ServerContextBase& call, Access needed) const;
+  AuthVerdict Check(const std::multimap<grpc::string_ref, grpc::string_ref>& metadata, Access needed) const;
 
  private:
   // Keyed by the token's SHA-256, so neither the map's order nor the comparison leaks the token itself.
   std::map<std::string, Role> tokens_;
 };
+
+// Server reflection is gRPC's service, not ours, so its calls pass through no handler of ours: this interceptor
+// cancels every reflection call without an accepted token when tokens are configured (only health stays open).
+std::unique_ptr<grpc::experimental::ServerInterceptorFactoryInterface> MakeReflectionGuard(
+    const TokenAuthenticator& auth);
 
 }  // namespace springblend::server

@@ -7,46 +7,58 @@
 
 #include "character_store.h"
 #include "convert.h"
+#include "memory_budget.h"
 #include "metrics.h"
 #include "security.h"
 #include "solver_pool.h"
+#include "watchdog.h"
 #include "springblend/v1/springblend.grpc.pb.h"
 
 namespace springblend::server {
 
 struct ServiceContext {
   CharacterStore& store;
-  SolverPool& pool;
+  SolverPool& pool;           // solves and builds: Solve, Interactive, UploadCharacter
+  SolverPool& metadata_pool;  // GetCharacter, ListCharacters, DeleteCharacter: never behind a solve
   Limits limits;
   std::string replica_name;  // reported in every frame's served_by
   Metrics& metrics;
   const TokenAuthenticator& auth;  // checked first by every handler; without tokens every call is allowed
+  MemoryBudget& memory;            // uploads in progress and open streams (--request-memory-mb)
+  Watchdog& watchdog;              // stalled streams and idle sessions (--stall-seconds, --idle-seconds)
 };
 
-class CharacterServiceImpl final : public v1::CharacterService::CallbackService {
+// Every method is registered raw (grpc::ByteBuffer in and out) so that bytes which do not parse as the request
+// message get INVALID_ARGUMENT with a message from us, instead of gRPC's bare UNIMPLEMENTED (unary, Solve) or
+// a silently ended stream (Interactive). Handlers parse first, then work on the typed messages.
+using CharacterServiceBase = v1::CharacterService::WithRawCallbackMethod_UploadCharacter<
+    v1::CharacterService::WithRawCallbackMethod_GetCharacter<v1::CharacterService::WithRawCallbackMethod_ListCharacters<
+        v1::CharacterService::WithRawCallbackMethod_DeleteCharacter<v1::CharacterService::Service>>>>;
+using SolveServiceBase = v1::SolveService::WithRawCallbackMethod_Solve<
+    v1::SolveService::WithRawCallbackMethod_Interactive<v1::SolveService::Service>>;
+
+class CharacterServiceImpl final : public CharacterServiceBase {
  public:
   explicit CharacterServiceImpl(ServiceContext& context) : context_(context) {}
-  grpc::ServerReadReactor<v1::UploadChunk>* UploadCharacter(grpc::CallbackServerContext* call,
-                                                            v1::Character* response) override;
-  grpc::ServerUnaryReactor* GetCharacter(grpc::CallbackServerContext* call, const v1::GetCharacterRequest* request,
-                                         v1::Character* response) override;
-  grpc::ServerUnaryReactor* ListCharacters(grpc::CallbackServerContext* call, const v1::ListCharactersRequest* request,
-                                           v1::ListCharactersResponse* response) override;
-  grpc::ServerUnaryReactor* DeleteCharacter(grpc::CallbackServerContext* call,
-                                            const v1::DeleteCharacterRequest* request,
-                                            v1::DeleteCharacterResponse* response) override;
+  grpc::ServerReadReactor<grpc::ByteBuffer>* UploadCharacter(grpc::CallbackServerContext* call,
+                                                             grpc::ByteBuffer* response) override;
+  grpc::ServerUnaryReactor* GetCharacter(grpc::CallbackServerContext* call, const grpc::ByteBuffer* request,
+                                         grpc::ByteBuffer* response) override;
+  grpc::ServerUnaryReactor* ListCharacters(grpc::CallbackServerContext* call, const grpc::ByteBuffer* request,
+                                           grpc::ByteBuffer* response) override;
+  grpc::ServerUnaryReactor* DeleteCharacter(grpc::CallbackServerContext* call, const grpc::ByteBuffer* request,
+                                            grpc::ByteBuffer* response) override;
 
  private:
   ServiceContext& context_;
 };
 
-class SolveServiceImpl final : public v1::SolveService::CallbackService {
+class SolveServiceImpl final : public SolveServiceBase {
  public:
   explicit SolveServiceImpl(ServiceContext& context) : context_(context) {}
-  grpc::ServerWriteReactor<v1::SolvedFrame>* Solve(grpc::CallbackServerContext* call,
-                                                   const v1::SolveRequest* request) override;
-  grpc::ServerBidiReactor<v1::InteractiveRequest, v1::SolvedFrame>* Interactive(
-      grpc::CallbackServerContext* call) override;
+  grpc::ServerWriteReactor<grpc::ByteBuffer>* Solve(grpc::CallbackServerContext* call,
+                                                    const grpc::ByteBuffer* request) override;
+  grpc::ServerBidiReactor<grpc::ByteBuffer, grpc::ByteBuffer>* Interactive(grpc::CallbackServerContext* call) override;
 
  private:
   ServiceContext& context_;

@@ -25,6 +25,16 @@ bool SolverPool::TrySubmit(std::function<void()> job) {
   return true;
 }
 
+bool SolverPool::SubmitContinuation(std::function<void()> job) {
+  {
+    std::lock_guard lock(mutex_);
+    if (stopping_) return false;
+    queue_.push_back(std::move(job));
+  }
+  wake_.notify_one();
+  return true;
+}
+
 int SolverPool::queue_depth() const {
   std::lock_guard lock(mutex_);
   return static_cast<int>(queue_.size());

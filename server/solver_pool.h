@@ -20,6 +20,9 @@ class SolverPool {
 
   // False when the queue is full or the pool is stopping.
   bool TrySubmit(std::function<void()> job);
+  // The next step of work already admitted (a stream's next frame once the previous one is sent): queued
+  // even when the queue is full, since refusing it would drop a stream half done. False only when stopping.
+  bool SubmitContinuation(std::function<void()> job);
   int queue_depth() const;
   int busy() const;
   int threads() const { return static_cast<int>(workers_.size()); }

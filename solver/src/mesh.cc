@@ -10,6 +10,7 @@
 #include <algorithm>
 #include <array>
 #include <cctype>
+#include <charconv>
 #include <cmath>
 #include <filesystem>
 #include <fstream>
@@ -191,7 +192,11 @@ std::string CheckPly(std::string text, const std::string& source) {
 //   checked first: V, V/VT, V//VN or V/VT/VN, each a decimal integer that fits an int.
 // Lines are taken as OpenMesh takes them: split at '\n', trimmed, '#' starts a comment, the first word is the
 // keyword. Returns the text to hand to OpenMesh.
-std::string CheckObj(std::string text, const std::string& source) {
+// - a `v` line whose numbers do not parse (`v nan 0 0`, `v 1,5 0 0`, `v 1e400 0 0`, `v 1 0`, `v 1.0.0 0 0`) is
+//   dropped or half-read by OpenMesh, silently shifting every later index: each is checked here, 3 to 7 finite
+//   numbers, and refused naming the line.
+// `limits` (vertices, triangles, corners per face, valence) are checked in the same pass.
+std::string CheckObj(std::string text, const std::string& source, const MeshTextLimits& limits) {
   const auto is_space = [](char c) { return std::isspace(static_cast<unsigned char>(c)) != 0; };
   const auto is_index = [](std::string_view v, bool required) {
     if (v.empty()) return !required;
@@ -201,6 +206,11 @@ std::string CheckObj(std::string text, const std::string& source) {
     }
     return std::stoll(std::string(v)) <= std::numeric_limits<int>::max();
   };
+  const auto refuse = [&](int line, const std::string& what) {
+    throw Error(ErrorCode::kInvalidInput, fmt::format("{}: line {}: {}", source, line, what));
+  };
+  std::int64_t vertices = 0, triangles = 0;
+  std::vector<std::int32_t> valence;  // per vertex seen so far, only with a valence limit
   int number = 0;
   for (size_t at = 0; at < text.size(); ++number) {
     const size_t end = std::min(text.find('\n', at), text.size());
@@ -212,7 +222,33 @@ std::string CheckObj(std::string text, const std::string& source) {
     const std::string_view keyword = line.substr(word, word_end - word);
     if (keyword == "mtllib") {
       std::fill(text.begin() + static_cast<std::ptrdiff_t>(at), text.begin() + static_cast<std::ptrdiff_t>(end), ' ');
+    } else if (keyword == "v") {
+      int numbers = 0;
+      for (size_t i = word_end; i < line.size();) {
+        while (i < line.size() && is_space(line[i])) ++i;
+        if (i == line.size() || line[i] == '#') break;
+        const size_t start = i;
+        while (i < line.size() && !is_space(line[i])) ++i;
+        std::string_view item = line.substr(start, i - start);
+        if (item.size() > 1 && item[0] == '+') item.remove_prefix(1);
+        double value = 0.0;
+        const auto [ptr, ec] = std::from_chars(item.data(), item.data() + item.size(), value);
+        if (ec != std::errc() || ptr != item.data() + item.size() || !std::isfinite(value)) {
+          refuse(number + 1, fmt::format("vertex {}: '{}' is not a finite number", vertices + 1,
+                                         line.substr(start, std::min<size_t>(i - start, 32))));
+        }
+        ++numbers;
+      }
+      if (numbers < 3 || numbers > 7) {
+        refuse(number + 1, fmt::format("vertex {}: 'v' needs x y z (and at most 4 more numbers), got {} numbers",
+                                       vertices + 1, numbers));
+      }
+      if (++vertices > limits.max_vertices && limits.max_vertices > 0) {
+        refuse(number + 1, fmt::format("more than {} vertices (the limit)", limits.max_vertices));
+      }
+      if (limits.max_valence > 0) valence.push_back(0);
     } else if (keyword == "f") {
+      std::int64_t corners = 0;
       for (size_t i = word_end; i < line.size();) {
         while (i < line.size() && is_space(line[i])) ++i;
         const size_t start = i;
@@ -233,6 +269,23 @@ std::string CheckObj(std::string text, const std::string& source) {
                                   "indices, V required)",
                                   source, number + 1, corner.substr(0, 32)));
         }
+        if (++corners > limits.max_corners_per_face && limits.max_corners_per_face > 0) {
+          refuse(number + 1, fmt::format("a face with more than {} corners (the limit)", limits.max_corners_per_face));
+        }
+        if (limits.max_valence > 0) {
+          // OBJ indices are 1-based, negative ones count back from the last vertex.
+          const long long index = std::stoll(std::string(corner.substr(0, first)));
+          const long long v = index > 0 ? index - 1 : vertices + index;
+          if (v >= 0 && v < static_cast<long long>(valence.size()) &&
+              ++valence[static_cast<size_t>(v)] > limits.max_valence) {
+            refuse(number + 1, fmt::format("vertex {} is in more than {} faces (the valence limit)", v + 1,
+                                           limits.max_valence));
+          }
+        }
+      }
+      triangles += std::max<std::int64_t>(corners - 2, 0);
+      if (limits.max_faces > 0 && triangles > limits.max_faces) {
+        refuse(number + 1, fmt::format("more than {} triangles (the limit)", limits.max_faces));
       }
     }
     at = end + 1;
@@ -280,13 +333,14 @@ TriangleMesh ReadWithOpenMesh(std::istream& in, const std::string& format, const
   return Triangulate(importer.soup, source);
 }
 
-TriangleMesh ReadMesh(std::istream& in, const std::string& format, const std::string& source) {
+TriangleMesh ReadMesh(std::istream& in, const std::string& format, const std::string& source,
+                      const MeshTextLimits& limits = {}) {
   QuietOpenMesh();
   if (format == "stl") return ReadWithOpenMesh(in, format, source);
   // Read whole: OBJ (the server's format) and PLY to check them before OpenMesh, OFF for our own reader.
   std::string text((std::istreambuf_iterator<char>(in)), std::istreambuf_iterator<char>());
   if (format == "off") return Triangulate(ReadOff(text, source), source);
-  text = format == "ply" ? CheckPly(std::move(text), source) : CheckObj(std::move(text), source);
+  text = format == "ply" ? CheckPly(std::move(text), source) : CheckObj(std::move(text), source, limits);
   std::istringstream checked(std::move(text));
   return ReadWithOpenMesh(checked, format, source);
 }
@@ -311,13 +365,14 @@ TriangleMesh LoadMesh(const std::string& path) {
   return mesh;
 }
 
-TriangleMesh LoadMeshFromText(const std::string& text, const std::string& format, const std::string& source) {
+TriangleMesh LoadMeshFromText(const std::string& text, const std::string& format, const std::string& source,
+                              const MeshTextLimits& limits) {
   const std::string f = Lowercase(format);
   if (f != "obj" && f != "ply" && f != "off" && f != "stl") {
     throw Error(ErrorCode::kInvalidInput, source + ": unsupported mesh format '" + format + "'");
   }
   std::istringstream in(text);
-  return ReadMesh(in, f, source);
+  return ReadMesh(in, f, source, limits);
 }
 
 void ValidateMesh(const TriangleMesh& mesh) {

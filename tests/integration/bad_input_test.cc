@@ -248,15 +248,16 @@ class BadInputTest : public ::testing::Test {
     // Solves.
     solve("unknown character", [](v1::SolveRequest& r) { r.set_character_id(std::string(64, 'a')); },
           StatusCode::NOT_FOUND, "upload it first");
+    // An id that is not a hex digest is a malformed request (issue 19), never a path.
     solve("a path as the id", [](v1::SolveRequest& r) { r.set_character_id("../../../../etc/passwd"); },
-          StatusCode::NOT_FOUND, "no character with id");
+          kInvalid, "is not a character id");
     solve("a 64-character path as the id", [](v1::SolveRequest& r) { r.set_character_id("/" + std::string(63, 'a')); },
-          StatusCode::NOT_FOUND, "no character with id");
-    solve("an empty id", [](v1::SolveRequest& r) { r.clear_character_id(); }, StatusCode::NOT_FOUND, "no character");
+          kInvalid, "is not a character id");
+    solve("an empty id", [](v1::SolveRequest& r) { r.clear_character_id(); }, kInvalid, "is not a character id");
     solve("no frames", [](v1::SolveRequest& r) { r.clear_frames(); }, kInvalid, "frames is empty");
     solve("101 frames", [](v1::SolveRequest& r) {
       for (int i = 0; i < 99; ++i) *r.add_frames() = r.frames(0);
-    }, kInvalid, "over the limit of 100 (--max-frames)");
+    }, StatusCode::RESOURCE_EXHAUSTED, "over the limit of 100 (--max-frames)");
     solve("one weight for two targets", [](v1::SolveRequest& r) { r.mutable_frames(1)->mutable_weights()->RemoveLast(); },
           kInvalid, "frames[1]: weights has 1 entries but the rig has 2 targets");
     solve("three weights", [](v1::SolveRequest& r) { r.mutable_frames(0)->add_weights(0); }, kInvalid,
@@ -345,13 +346,13 @@ class BadInputTest : public ::testing::Test {
       r.set_id("../" + std::string(61, 'a'));
       v1::Character out;
       return characters_->GetCharacter(Context().get(), r, &out);
-    }, StatusCode::NOT_FOUND, "no character"});
+    }, kInvalid, "is not a character id"});
     cases.push_back({"delete: a path", [this] {
       v1::DeleteCharacterRequest r;
       r.set_id(cache_.path().string() + "/../x");
       v1::DeleteCharacterResponse out;
       return characters_->DeleteCharacter(Context().get(), r, &out);
-    }, StatusCode::NOT_FOUND, "no character"});
+    }, kInvalid, "is not a character id"});
     return cases;
   }
 

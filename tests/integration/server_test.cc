@@ -118,7 +118,7 @@ TEST_F(ServerTest, BadRequestsGetClearStatusesAndTheServerKeepsServing) {
   const std::string unknown(64, 'a');
   EXPECT_EQ(StatusOf([&] { client_->Solve(SweepRequest(unknown, 2, {1, 0}), [](auto&) {}); }),
             grpc::StatusCode::NOT_FOUND);
-  EXPECT_EQ(StatusOf([&] { client_->Get("../../etc/passwd"); }), grpc::StatusCode::NOT_FOUND);
+  EXPECT_EQ(StatusOf([&] { client_->Get("../../etc/passwd"); }), grpc::StatusCode::INVALID_ARGUMENT);
 
   v1::SolveRequest wrong_count = SweepRequest(c.id(), 2, {1.0});
   EXPECT_EQ(StatusOf([&] { client_->Solve(wrong_count, [](auto&) {}); }), grpc::StatusCode::INVALID_ARGUMENT);

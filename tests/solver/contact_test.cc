@@ -187,6 +187,47 @@ TEST(Collider, MeshInsideTestAgreesWithTheWindingNumber) {
   EXPECT_GT(inside, 10);
 }
 
+// A closed 4-vertex "tetrahedron" whose corners lie on one line, or at one point: CGAL's Side_of_triangle_mesh
+// retried rays for ever on it (issue 19). Now refused before any CGAL call, naming the problem.
+TEST(Collider, DegenerateMeshesAreRefusedNotLoopedOn) {
+  const std::string faces = "f 1 2 3\nf 1 4 2\nf 2 4 3\nf 3 4 1\n";
+  const auto refusal = [&](const std::string& vertices) {
+    return std::string(CatchError([&] { Collider::Mesh(LoadMeshFromText(vertices + faces, "obj", "c.obj")); }).what());
+  };
+  EXPECT_THAT(refusal("v 0 0 0\nv 1 0 0\nv 2 0 0\nv 3 0 0\n"), HasSubstr("degenerate"));
+  EXPECT_THAT(refusal("v 1 1 1\nv 1 1 1\nv 1 1 1\nv 1 1 1\n"), HasSubstr("degenerate"));
+  EXPECT_THAT(refusal("v 0 0 0\nv 1 0 0\nv 0 1 0\nv 1 1 0\n"), HasSubstr("degenerate"));  // flat
+  // Non-manifold: two faces use one edge in the same direction.
+  EXPECT_THAT(refusal("v 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 0 1\n" + std::string("f 1 2 3\n")),
+              HasSubstr("same direction"));
+  // A valid tetrahedron is taken, and its inside test answers.
+  const Collider tet = Collider::Mesh(LoadMeshFromText("v 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 0 1\n"
+                                                       "f 1 3 2\nf 1 2 4\nf 2 3 4\nf 3 1 4\n", "obj", "t.obj"));
+  Eigen::Vector3d s, n;
+  EXPECT_TRUE(tet.Penetrates({0.1, 0.1, 0.1}, RigidTransform{}, &s, &n));
+  EXPECT_FALSE(tet.Penetrates({1.0, 1.0, 1.0}, RigidTransform{}, &s, &n));
+  // Points exactly on a vertex, an edge or in a face's plane through an edge: bounded, whatever the answer.
+  for (const Eigen::Vector3d p : {Eigen::Vector3d(0, 0, 0), Eigen::Vector3d(0.5, 0, 0), Eigen::Vector3d(-1, 0, 0),
+                                  Eigen::Vector3d(0.25, 0.25, 0), Eigen::Vector3d(-1, -1, -1)}) {
+    tet.Penetrates(p, RigidTransform{}, &s, &n);
+  }
+}
+
+TEST(Collider, MeshCapsAreCheckedBeforeCgal) {
+  const TriangleMesh spot = SpotObstacle();
+  MeshColliderLimits few;
+  few.max_vertices = 100;
+  EXPECT_THAT(CatchError([&] { Collider::Mesh(spot, few); }).what(), HasSubstr("over the limit of 100"));
+  MeshColliderLimits low_valence;
+  low_valence.max_valence = 3;
+  EXPECT_THAT(CatchError([&] { Collider::Mesh(spot, low_valence); }).what(), HasSubstr("valence"));
+}
+
+TEST(Collider, APlaneWhoseNormalOverflowsIsRefused) {
+  EXPECT_THAT(CatchError([] { Collider::Plane({0, 0, 0}, {1e200, 1e200, 1e200}); }).what(), HasSubstr("overflows"));
+  EXPECT_EQ(Collider::Plane({0, 0, 0}, {0, 1e100, 0}).shape(), Collider::Shape::kPlane);
+}
+
 TEST(Contacts, RefusedForARigWithNothingToHoldIt) {
   RigOptions surface_only;
   surface_only.interior = false;

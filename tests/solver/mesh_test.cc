@@ -374,6 +374,41 @@ TEST(LoadMesh, ObjMaterialLibrariesAreNeverOpened) {
               HasSubstr("c.obj: line 3: face corner '/1'"));
 }
 
+TEST(LoadMesh, ObjVertexLinesThatDoNotParseAreRefusedNamingTheLine) {
+  const std::string faces = "f 1 2 3\n";
+  for (const std::string bad : {"v nan 0 0", "v 1,5 0 0", "v 1e400 0 0", "v 1 0", "v 1.0.0 0 0", "v inf 0 0"}) {
+    const std::string text = "v 0 0 0\nv 1 0 0\n" + bad + "\nv 0 1 0\n" + faces;
+    EXPECT_THAT(CatchError([&] { LoadMeshFromText(text, "obj", "c.obj"); }).what(), HasSubstr("c.obj: line 3"))
+        << bad;
+  }
+  // Comments, a w coordinate, vertex colours and a leading + still read.
+  const TriangleMesh ok = LoadMeshFromText("v 0 0 0 # origin\nv +1 0 0 1\nv 0 1 0 0.5 0.5 0.5\n" + faces, "obj", "c.obj");
+  EXPECT_EQ(ok.vertices.rows(), 3);
+  EXPECT_EQ(ok.vertices(1, 0), 1.0);
+}
+
+TEST(LoadMesh, ObjTextLimitsAreCheckedBeforeOpenMesh) {
+  std::string fan = "v 0 0 0\n";
+  for (int i = 0; i < 50; ++i) fan += fmt::format("v {} {} 1\n", std::cos(i * 0.1), std::sin(i * 0.1));
+  for (int i = 0; i < 49; ++i) fan += fmt::format("f 1 {} {}\n", i + 2, i + 3);
+  MeshTextLimits limits;
+  limits.max_valence = 10;
+  EXPECT_THAT(CatchError([&] { LoadMeshFromText(fan, "obj", "c.obj", limits); }).what(), HasSubstr("valence"));
+  limits = {};
+  limits.max_vertices = 20;
+  EXPECT_THAT(CatchError([&] { LoadMeshFromText(fan, "obj", "c.obj", limits); }).what(), HasSubstr("more than 20 vertices"));
+  limits = {};
+  limits.max_faces = 20;
+  EXPECT_THAT(CatchError([&] { LoadMeshFromText(fan, "obj", "c.obj", limits); }).what(), HasSubstr("more than 20 triangles"));
+  limits = {};
+  limits.max_corners_per_face = 8;
+  std::string polygon = fan + "f";
+  for (int i = 2; i < 40; ++i) polygon += fmt::format(" {}", i);
+  EXPECT_THAT(CatchError([&] { LoadMeshFromText(polygon + "\n", "obj", "c.obj", limits); }).what(),
+              HasSubstr("more than 8 corners"));
+  EXPECT_EQ(LoadMeshFromText(fan, "obj", "c.obj").faces.rows(), 49);
+}
+
 TEST(LoadMesh, SplitsPolygonsIntoTriangles) {
   TempDir dir;
   const TriangleMesh quad =

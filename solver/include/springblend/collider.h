@@ -22,6 +22,15 @@ namespace internal {
 class MeshColliderTree;
 }
 
+// Caps on a mesh collider, checked in one linear pass before any CGAL or OpenMesh structure is built: a
+// collider's cost (building its half-edge mesh and AABB tree, and every inside test) grows with these, and
+// with vertex valence faster than linearly. 0 turns a cap off.
+struct MeshColliderLimits {
+  int max_vertices = 100'000;
+  int max_faces = 200'000;  // triangles, after fan triangulation
+  int max_valence = 256;    // faces around one vertex
+};
+
 // The geometry of one obstacle, in the coordinates of the rig (before any per-frame motion).
 class Collider {
  public:
@@ -34,8 +43,12 @@ class Collider {
   static Collider Box(const Eigen::Vector3d& center, const Eigen::Vector3d& half_extents);
   // The half-space behind the plane through `point` with outward `normal`.
   static Collider Plane(const Eigen::Vector3d& point, const Eigen::Vector3d& normal);
-  // A closed, outward-oriented triangle mesh (an AABB tree answers inside tests and closest points).
-  static Collider Mesh(const TriangleMesh& mesh);
+  // A closed, outward-oriented triangle mesh (an AABB tree answers inside tests and closest points). Refused
+  // (Error kInvalidInput naming the problem) before any CGAL call when it is over `limits`, degenerate (a flat
+  // or point-like bounding box, a face without area), encloses no volume, or is not a closed edge-manifold
+  // surface (every edge used by exactly two faces, in opposite directions). Its inside test is bounded: ray
+  // parity along at most a few fixed directions, then the generalized winding number.
+  static Collider Mesh(const TriangleMesh& mesh, const MeshColliderLimits& limits = {});
 
   Shape shape() const { return shape_; }
   const std::string& description() const { return description_; }
