@@ -5,7 +5,8 @@
 #   (a) health; (b) uploads of several characters; (c) affinity: every solve of one character is served by the
 #   same replica, and at least two replicas serve something; (d) a replica killed while solves run: the others'
 #   streams finish, and its characters move to a live replica and are rebuilt from the shared cache without a
-#   re-upload; (e) the farm's frames equal a local `springblend blend` of the same frames; plus the image's
+#   re-upload; (e) the farm's frames equal a local `springblend blend` of the same frames; (f) a bake split into
+#   chunks on two replicas is byte-identical to the whole bake (stateless frames); plus the image's
 #   non-root user and its HEALTHCHECK. Cleans up containers and nginx on exit; exits non-zero on any failure.
 #
 #   bash deploy/test-farm.sh
@@ -320,6 +321,40 @@ EOF
   done
 done
 [ "$ok" = 1 ] && pass "(e) farm frames equal local blend frames (max abs difference < 1e-5 of the bounding box) for ${#names[@]} characters, before and after the kill"
+
+# (f) stateless frames: a bake split into two chunks on two different replicas is byte-identical to the whole
+# bake (every frame is a function of its own request)
+alive=()
+for i in "${replicas[@]}"; do [ "replica-$i" = "$victim" ] || alive+=("127.0.0.1:5006$i"); done
+name="${names[0]}"
+mkdir -p "$farm/chunks"
+/usr/bin/python3 - "$farm/chunks" "${weights_of[$name]}" <<'EOF'
+import json, sys
+out, end = sys.argv[1], [float(w) for w in sys.argv[2].split(",")]
+frames = [{"weights": [((7 * i) % 12) / 11.0 * w for w in end]} for i in range(12)]  # out of order
+for file, part in (("whole", frames), ("first", frames[:6]), ("second", frames[6:])):
+    json.dump({"frames": part}, open(f"{out}/{file}.json", "w"))
+EOF
+chunk() {  # replica, scene, output directory
+  "$client" solve --server "$1" --character "${id_of[$name]}" --frames "$farm/chunks/$2.json" --out "$3" \
+    >"$3.jsonl" 2>"$3.err"
+}
+if chunk "${alive[0]}" whole "$farm/chunks/whole" && chunk "${alive[1]}" first "$farm/chunks/first" &&
+   chunk "${alive[0]}" second "$farm/chunks/second"; then
+  same=1
+  for i in $(seq 0 11); do
+    if [ "$i" -lt 6 ]; then part="$farm/chunks/first/frame_$(printf %04d "$i").obj"
+    else part="$farm/chunks/second/frame_$(printf %04d $((i - 6))).obj"; fi
+    cmp -s "$farm/chunks/whole/frame_$(printf %04d "$i").obj" "$part" || { same=0; echo "  frame $i differs" >&2; }
+  done
+  if [ "$same" = 1 ]; then
+    pass "(f) a 12-frame bake in two chunks on ${alive[1]} and ${alive[0]} is byte-identical to the whole bake"
+  else
+    fail "(f) a chunked bake differs from the whole bake (stateless frames)"
+  fi
+else
+  fail "(f) chunked bake: $(tail -qn1 "$farm/chunks/"*.err 2>/dev/null | head -n1)"
+fi
 
 timing_test=$(( $(date +%s) - s ))
 finished=1

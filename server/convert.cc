@@ -99,6 +99,7 @@ void UploadAssembler::Add(v1::UploadChunk& chunk) {
     if (o.static_tolerance() != 0.0) data_.options.static_tolerance = o.static_tolerance();
     data_.options.interior = !o.no_interior();
     data_.options.anchor = !o.no_anchor();
+    data_.options.target_paths = !o.no_target_paths();
     if (o.bending_stiffness() != 0.0) data_.options.bending_stiffness = o.bending_stiffness();
     data_.options.Validate();
     vertex_count_ = h.vertex_count();

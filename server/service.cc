@@ -5,6 +5,7 @@
 #include <spdlog/spdlog.h>
 
 #include <chrono>
+#include <map>
 #include <mutex>
 #include <optional>
 
@@ -168,9 +169,12 @@ class UploadReactor final : public grpc::ServerReadReactor<grpc::ByteBuffer> {
   grpc::ByteBuffer bytes_;
 };
 
-// Streams one frame at a time without holding a worker while the client reads: a pool job solves a frame and
-// hands it to gRPC; the job ends there, and OnWriteDone queues the next frame's job. A slow reader holds one
-// frame of memory and no thread; one that stops reading is cancelled by the watchdog (--stall-seconds).
+// A Solve stream. Frames are independent (stateless frames), so up to one per pool thread are solved at once,
+// each on a worker of its own, and written in order as they become ready: one long bake uses every core. At
+// most that many solved-or-solving frames exist at a time (a slow reader holds them, not more), and a worker
+// returns to the pool as soon as its frame is stored; the next frames are queued as writes complete. The
+// stream finishes only when no job of it is running any more. One that stops reading is cancelled by the
+// watchdog (--stall-seconds).
 class SolveReactor final : public grpc::ServerWriteReactor<grpc::ByteBuffer> {
  public:
   SolveReactor(grpc::CallbackServerContext* call, ServiceContext& context, v1::SolveRequest request)
@@ -179,20 +183,25 @@ class SolveReactor final : public grpc::ServerWriteReactor<grpc::ByteBuffer> {
         request_(std::move(request)),
         watch_(context.watchdog.Watch(call, false)),
         memory_(&context.memory) {
-    if (!context_.pool.TrySubmit([this] { Start(); })) Done(kQueueFull);
+    std::unique_lock lock(mutex_);
+    running_ = 1;
+    if (!context_.pool.TrySubmit([this] { Start(); })) {
+      running_ = 0;
+      Act(lock, Fail(kQueueFull));
+    }
   }
 
   void OnWriteDone(bool ok) override {
     watch_->Progress();
+    std::unique_lock lock(mutex_);
+    writing_ = false;
     if (!ok) {
-      Done(StoppedStatus(*watch_, "the client cancelled the stream"));
+      Act(lock, Fail(StoppedStatus(*watch_, "the client cancelled the stream")));
       return;
     }
-    if (++next_ == job_.frames.size()) {
-      Done(grpc::Status::OK);
-      return;
-    }
-    if (!context_.pool.SubmitContinuation([this] { SolveNext(); })) Done(kShuttingDown);
+    ++written_;
+    const Action action = Schedule();
+    Act(lock, action != Action::kNone ? action : WriteOrFinish());
   }
   void OnDone() override {
     watch_->Done();
@@ -200,53 +209,145 @@ class SolveReactor final : public grpc::ServerWriteReactor<grpc::ByteBuffer> {
   }
 
  private:
-  void Done(const grpc::Status& status) {
-    context_.metrics.CountRequest("Solve", CodeName(status.error_code()));
-    Finish(status);
-  }
-  // On a pool worker: the request's conversion (its colliders once) and the solver, then the first frame.
+  // On a pool worker: the request's conversion (its colliders once), then the first frames.
   void Start() {
     try {
       CheckId(request_.character_id(), "character_id");
       entry_ = context_.store.Get(request_.character_id());
-      if (!entry_) {
-        Done(NotFound(request_.character_id()));
-        return;
-      }
+      if (!entry_) throw StatusError(NotFound(request_.character_id()));
       memory_.Grow(StreamBytes(request_.colliders(), *entry_->rig));
       job_ = ToSolveJob(request_, *entry_->rig, context_.limits, [this] { return call_->IsCancelled() || Expired(); });
-      solver_ = std::make_unique<Solver>(entry_->rig, job_.options);
-      solver_->SetColliders(std::move(job_.colliders));
+      colliders_ = std::move(job_.colliders);
+      in_flight_limit_ = std::max<size_t>(1, std::min<size_t>(context_.pool.threads(), job_.frames.size()));
+    } catch (const StatusError& e) {
+      std::unique_lock lock(mutex_);
+      --running_;
+      Act(lock, Fail(e.status));
+      return;
     } catch (const std::exception& e) {
-      Done(ToStatus(e));
+      std::unique_lock lock(mutex_);
+      --running_;
+      Act(lock, Fail(ToStatus(e)));
       return;
     }
-    SolveNext();
+    std::unique_lock lock(mutex_);
+    --running_;
+    started_ = true;
+    const Action action = Schedule();
+    Act(lock, action != Action::kNone ? action : FinishIfDone());
   }
-  // On a pool worker. StartWrite or Finish is the last thing it does: OnWriteDone or OnDone may follow at once.
-  void SolveNext() {
-    const size_t i = next_;
+
+  enum class Action { kNone, kWrite, kFinish };
+  // Done after the lock is released: gRPC may run OnWriteDone or OnDone (which deletes this) at once.
+  void Act(std::unique_lock<std::mutex>& lock, Action action) {
+    lock.unlock();
+    if (action == Action::kWrite) {
+      StartWrite(&frame_);
+    } else if (action == Action::kFinish) {
+      context_.metrics.CountRequest("Solve", CodeName(final_status_.error_code()));
+      Finish(final_status_);
+    }
+  }
+
+  // Under the lock: queues jobs for the next frames while fewer than in_flight_limit_ frames are solving or
+  // waiting to be written. A refusal (the pool is stopping) fails the stream.
+  Action Schedule() {
+    while (started_ && !failed_ && next_ < job_.frames.size() &&
+           static_cast<size_t>(running_) + ready_.size() < in_flight_limit_) {
+      const size_t i = next_++;
+      ++running_;
+      if (!context_.pool.SubmitContinuation([this, i] { SolveFrame(i); })) {
+        --running_;
+        return Fail(kShuttingDown);
+      }
+    }
+    return Action::kNone;
+  }
+
+  // On a pool worker.
+  void SolveFrame(size_t i) {
+    std::optional<grpc::Status> error;
+    grpc::ByteBuffer bytes;
     if (call_->IsCancelled() || Expired()) {
-      Done(Expired() ? DeadlineExceeded(fmt::format("deadline passed after {} of {} frames", i, job_.frames.size()))
-                     : StoppedStatus(*watch_, "the client cancelled the stream"));
+      error = Expired() ? DeadlineExceeded(fmt::format("deadline passed after {} of {} frames", i, job_.frames.size()))
+                        : StoppedStatus(*watch_, "the client cancelled the stream");
+    } else {
+      try {
+        std::unique_ptr<Solver> solver = TakeSolver();
+        Points positions;
+        const SolveSummary summary = solver->Solve(job_.frames[i], &positions);
+        ReturnSolver(std::move(solver));
+        context_.metrics.CountFrame(summary.solve_ms / 1000.0, summary.newton_iterations, summary.converged());
+        CheckSolved(positions, i);
+        bytes = Serialize(ToProto(static_cast<int>(i), positions, entry_->rig->rest().faces, summary,
+                                  job_.with_normals, context_.replica_name));
+      } catch (const std::exception& e) {
+        error = ToStatus(e);
+      }
+    }
+    std::unique_lock lock(mutex_);
+    --running_;
+    if (error) {
+      Act(lock, Fail(*error));
       return;
     }
-    try {
-      Points positions;
-      const SolveSummary summary = solver_->Solve(job_.frames[i], &positions);
-      context_.metrics.CountFrame(summary.solve_ms / 1000.0, summary.newton_iterations, summary.converged());
-      CheckSolved(positions, i);
-      frame_ = Serialize(ToProto(static_cast<int>(i), positions, entry_->rig->rest().faces, summary,
-                                 job_.with_normals, context_.replica_name));
-    } catch (const std::exception& e) {
-      Done(ToStatus(e));
-      return;
+    ready_.emplace(i, std::move(bytes));
+    const Action action = Schedule();
+    Act(lock, action != Action::kNone ? action : WriteOrFinish());
+  }
+
+  std::unique_ptr<Solver> TakeSolver() {
+    {
+      std::lock_guard lock(mutex_);
+      if (!solvers_.empty()) {
+        std::unique_ptr<Solver> solver = std::move(solvers_.back());
+        solvers_.pop_back();
+        return solver;
+      }
     }
-    watch_->Waiting();
-    StartWrite(&frame_);
+    auto solver = std::make_unique<Solver>(entry_->rig, job_.options);
+    solver->SetColliders(colliders_);
+    return solver;
+  }
+  void ReturnSolver(std::unique_ptr<Solver> solver) {
+    std::lock_guard lock(mutex_);
+    solvers_.push_back(std::move(solver));
+  }
+
+  // Under the lock: the next frame in order when it is ready and no write is in flight; else whether the stream
+  // is done (every frame written, or failed, and nothing of it runs).
+  Action WriteOrFinish() {
+    if (!failed_ && !writing_) {
+      const auto it = ready_.find(written_);
+      if (it != ready_.end()) {
+        frame_ = std::move(it->second);
+        ready_.erase(it);
+        writing_ = true;
+        watch_->Waiting();
+        return Action::kWrite;
+      }
+    }
+    return FinishIfDone();
+  }
+  Action Fail(const grpc::Status& status) {
+    if (!failed_) failed_ = status;
+    ready_.clear();
+    return FinishIfDone();
+  }
+  Action FinishIfDone() {
+    if (finished_ || running_ > 0 || writing_) return Action::kNone;
+    if (!failed_ && !(started_ && written_ == job_.frames.size())) return Action::kNone;
+    finished_ = true;
+    final_status_ = failed_ ? *failed_ : grpc::Status::OK;
+    return Action::kFinish;
   }
 
   bool Expired() const { return std::chrono::system_clock::now() > call_->deadline(); }
+
+  struct StatusError : std::exception {
+    explicit StatusError(grpc::Status s) : status(std::move(s)) {}
+    grpc::Status status;
+  };
 
   grpc::CallbackServerContext* call_;
   ServiceContext& context_;
@@ -255,15 +356,25 @@ class SolveReactor final : public grpc::ServerWriteReactor<grpc::ByteBuffer> {
   Reservation memory_;
   std::shared_ptr<const CharacterStore::Entry> entry_;
   SolveJob job_;
-  std::unique_ptr<Solver> solver_;
-  size_t next_ = 0;
+  std::vector<Collider> colliders_;
+  std::mutex mutex_;
+  std::vector<std::unique_ptr<Solver>> solvers_;  // idle ones, reused by the next frames
+  std::map<size_t, grpc::ByteBuffer> ready_;       // solved, waiting for their turn to be written
+  size_t in_flight_limit_ = 1;
+  size_t next_ = 0;     // the next frame to solve
+  size_t written_ = 0;  // frames written
+  int running_ = 0;     // jobs of this stream on the pool
+  bool started_ = false, writing_ = false, finished_ = false;
+  std::optional<grpc::Status> failed_;
+  grpc::Status final_status_;
   grpc::ByteBuffer frame_;
 };
 
 // An interactive session. Frames arrive on gRPC threads and only replace the pending one; a pool job solves
 // the newest pending frame and hands it to gRPC, and the next job is queued when that write completes (or when
 // a frame arrives while nothing runs). No worker ever waits on the client. The colliders are converted and the
-// Solver (with its warm start) made once, at the start, and live as long as the session.
+// Solver made once, at the start, and live as long as the session; every frame is solved alone (stateless
+// frames), so the settled answer equals a one-frame Solve of the same weights.
 class InteractiveReactor final : public grpc::ServerBidiReactor<grpc::ByteBuffer, grpc::ByteBuffer> {
  public:
   InteractiveReactor(grpc::CallbackServerContext* call, ServiceContext& context)

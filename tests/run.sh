@@ -4,8 +4,9 @@
 #   PRESET=asan-ubsan bash tests/run.sh     the same under AddressSanitizer + UndefinedBehaviorSanitizer
 #   PRESET=tsan TESTS='Server|Thread' TARGETS='integration_server_test ...' bash tests/run.sh
 #                                           only the tests matching a regex (ctest -R), building only TARGETS
-#   EXCLUDE_LABELS='slow|install' ...       leave out tests with these CTest labels (ctest -LE); the sanitizer
-#                                           stages of .ci/run leave the long real-mesh cases to the release stage
+#   EXCLUDE_LABELS='slow|install' ...       leave out tests with these CTest labels (ctest -LE), or, with
+#   EXCLUDE_TESTS=REGEX, these tests (ctest -E); the sanitizer stages of .ci/run leave the long real-mesh
+#                                           cases to the release stage
 # Sanitizers stop a process at their first report (a server too, so its client's test fails); the options
 # below keep that explicit. TSan's suppressions (tests/tsan.supp) say why each is there.
 set -euo pipefail
@@ -22,6 +23,7 @@ cmake --build --preset "$preset" -j "$(nproc)" "${targets[@]}"
 filter=()
 if [ -n "${TESTS:-}" ]; then filter=(-R "$TESTS"); fi
 if [ -n "${EXCLUDE_LABELS:-}" ]; then filter+=(-LE "$EXCLUDE_LABELS"); fi
+if [ -n "${EXCLUDE_TESTS:-}" ]; then filter+=(-E "$EXCLUDE_TESTS"); fi
 runner=()
 # TBB's work stealing synchronises inside libtbb, which is not instrumented, so under TSan every parallel loop
 # would look racy. On one CPU TBB starts no workers and runs parallel loops inline; our own threads (the

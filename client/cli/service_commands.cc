@@ -28,7 +28,7 @@ struct RemoteArgs {
   std::string rest, name;
   std::vector<std::string> targets;
   std::vector<int> fixed;
-  bool no_interior = false, no_anchor = false;
+  bool no_interior = false, no_anchor = false, no_target_paths = false;
   // solve
   std::string character, out, frames_file;
   std::vector<double> weights;
@@ -129,6 +129,7 @@ int RunUpload(const RemoteArgs& args) {
   for (int v : args.fixed) options.add_fixed_vertices(static_cast<std::uint32_t>(v));
   options.set_no_interior(args.no_interior);
   options.set_no_anchor(args.no_anchor);
+  options.set_no_target_paths(args.no_target_paths);
   const v1::Character c = client.Upload(rest, targets, options, args.name.empty() ? rest.name : args.name);
   std::cout << CharacterJson(c).dump() << std::endl;
   return kExitOk;
@@ -272,6 +273,8 @@ std::vector<std::pair<std::string, Runner>> AddServiceCommands(CLI::App& app) {
   upload->add_option("--fixed", args->fixed, "fixed vertices")->delimiter(',');
   upload->add_flag("--no-interior", args->no_interior, "surface springs only");
   upload->add_flag("--no-anchor", args->no_anchor, "no internal anchor");
+  upload->add_flag("--no-target-paths", args->no_target_paths,
+                   "build no target paths: a faster upload, slower frames (still stateless)");
   runners.emplace_back("upload", Guarded([args] { return RunUpload(*args); }));
 
   CLI::App* solve = app.add_subcommand("solve", "solve frames on the server; writes OUT/frame_0000.obj ... and JSON lines");

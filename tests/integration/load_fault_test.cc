@@ -182,7 +182,9 @@ TEST(FaultTest, KillMinusNineMidUploadServesNothingHalfWritten) {
   // And an upload that dies while the rig builds or its file is written.
   server = std::make_unique<ServerProcess>(cache.path().string());
   std::thread uploader([&, address = server->address()] {
-    StatusOf([&] { Client({address}).Upload(face, {LoadMesh(testing::DataPath("face/jawOpen.obj"))}); });
+    v1::BuildOptions quick;
+    quick.set_no_target_paths(true);  // the kill comes while the rig builds either way
+    StatusOf([&] { Client({address}).Upload(face, {LoadMesh(testing::DataPath("face/jawOpen.obj"))}, quick); });
   });
   std::this_thread::sleep_for(std::chrono::milliseconds(400));
   server->Kill();
@@ -318,7 +320,10 @@ TEST(FaultTest, ASlowReaderDoesNotGrowServerMemory) {
   TempDir cache;
   ServerProcess server(cache.path().string(), {"--workers", "2", "--metrics", "127.0.0.1:0"});
   const TriangleMesh face = LoadMesh(testing::DataPath("face/generic_neutral_mesh.obj"));
-  const v1::Character c = Client({server.address()}).Upload(face, {LoadMesh(testing::DataPath("face/jawOpen.obj"))});
+  v1::BuildOptions quick;
+  quick.set_no_target_paths(true);  // linear frames below: the paths would only slow the upload
+  const v1::Character c =
+      Client({server.address()}).Upload(face, {LoadMesh(testing::DataPath("face/jawOpen.obj"))}, quick);
   // Linear frames are cheap to make and as large as any: a server that queued them would grow fast.
   v1::SolveRequest request = SweepRequest(c.id(), 5000, {1.0});
   request.mutable_options()->set_linear(true);

@@ -79,7 +79,7 @@ class Client:
     # Characters
 
     def upload(self, rest, faces, targets, target_names=None, name="", fixed_vertices=(), static_tolerance=0.0,
-               no_interior=False, no_anchor=False, bending_stiffness=0.0):
+               no_interior=False, no_anchor=False, bending_stiffness=0.0, no_target_paths=False):
         """Uploads a character and returns its Character message (id, cache_hit, summary, target_names).
 
         Args:
@@ -88,8 +88,8 @@ class Client:
             targets: a dict name -> #V by 3 positions (in weight order), or a list of arrays with target_names.
             target_names: one unique name per target when targets is a list.
             name: a label for people (not part of the id).
-            fixed_vertices, static_tolerance, no_interior, no_anchor, bending_stiffness: the rig builder's
-                BuildOptions (zero values mean the server's defaults).
+            fixed_vertices, static_tolerance, no_interior, no_anchor, bending_stiffness, no_target_paths: the rig
+                builder's BuildOptions (zero values mean the server's defaults).
         """
         if isinstance(targets, dict):
             target_names, targets = list(targets.keys()), list(targets.values())
@@ -108,7 +108,8 @@ class Client:
             shapes_.append(points)
         options = pb.BuildOptions(fixed_vertices=[int(v) for v in fixed_vertices],
                                   static_tolerance=float(static_tolerance), no_interior=bool(no_interior),
-                                  no_anchor=bool(no_anchor), bending_stiffness=float(bending_stiffness))
+                                  no_anchor=bool(no_anchor), bending_stiffness=float(bending_stiffness),
+                                  no_target_paths=bool(no_target_paths))
         header = pb.UploadHeader(name=name, vertex_count=len(rest), face_count=len(faces),
                                  target_names=[str(n) for n in target_names], options=options)
 
