@@ -17,6 +17,8 @@ namespace springblend::internal {
 
 namespace {
 
+constexpr int kMaxHalvings = 3;
+
 // The solves along one target's path, sharing one spring system, linear system and minimizer.
 class PathSolver {
  public:
@@ -34,8 +36,20 @@ class PathSolver {
     Eigen::MatrixXf correction;  // in the anchor's frame
     double energy = 0.0;
   };
-  // Solves alpha * target from the predictor's start.
-  Sample Solve(double alpha, Predictor& predictor, TargetPathsReport& report) {
+  // Solves alpha * target coming from `from` (the previous sample): where the continuation step is too long
+  // for Newton to converge, it is halved (up to three times) and the path followed through the midpoints.
+  Sample Refined(double from, double alpha, Predictor& predictor, TargetPathsReport& report, int depth = 0) {
+    Predictor before = predictor;
+    Sample sample = Solve(alpha, predictor, report, depth < kMaxHalvings);
+    if (std::isfinite(sample.energy) || depth >= kMaxHalvings) return sample;
+    predictor = std::move(before);
+    const double middle = 0.5 * (from + alpha);
+    Refined(from, middle, predictor, report, depth + 1);
+    return Refined(middle, alpha, predictor, report, depth + 1);
+  }
+
+  // Solves alpha * target from the predictor's start. A tentative solve that fails is not counted.
+  Sample Solve(double alpha, Predictor& predictor, TargetPathsReport& report, bool tentative = false) {
     const int n = rig_.num_vertices();
     std::vector<double> weights(rig_.num_targets(), 0.0);
     weights[target_] = alpha;
@@ -63,8 +77,9 @@ class PathSolver {
       minimizer_->Minimize(problem, &x, &summary);
     }
     const bool converged = summary.termination == MinimizerTermination::kConverged;
-    ++report.samples;
     report.newton_iterations += summary.iterations;
+    if (!converged && tentative) return {Eigen::MatrixXf(), std::numeric_limits<double>::infinity()};
+    ++report.samples;
     if (!converged) ++report.unconverged;
     Points solved(n, 3);
     for (int v = 0; v < n; ++v) solved.row(v) = x.segment<3>(3 * v).transpose();
@@ -109,14 +124,16 @@ std::vector<TargetPath> BuildTargetPaths(const Rig& rig, int intervals, double e
     // alone. Beyond [0, 1], continue from the nearer end.
     std::vector<PathSolver::Sample> up, down;
     Predictor from_rest;
-    for (int k = 0; k <= intervals; ++k) up.push_back(solver.Solve(k * step, from_rest, reports[t]));
+    for (int k = 0; k <= intervals; ++k) up.push_back(solver.Refined((k - 1) * step, k * step, from_rest, reports[t]));
     std::vector<Eigen::MatrixXf> inside(intervals + 1);
     for (int k = 0; k <= intervals; ++k) inside[k] = up[k].correction;
     // When the way up ends on the target itself, the way down would retrace it: skip it.
     const double reached = up.back().correction.cwiseAbs().maxCoeff();
     if (!(reached <= 1e-6 * rig.summary().bounding_box_diagonal)) {
       Predictor from_target;
-      for (int k = intervals; k >= 0; --k) down.push_back(solver.Solve(k * step, from_target, reports[t]));
+      for (int k = intervals; k >= 0; --k) {
+        down.push_back(solver.Refined((k + 1) * step, k * step, from_target, reports[t]));
+      }
       std::reverse(down.begin(), down.end());
       for (int k = 0; k <= intervals; ++k) {
         if (down[k].energy < up[k].energy) inside[k] = down[k].correction;
@@ -137,7 +154,9 @@ std::vector<TargetPath> BuildTargetPaths(const Rig& rig, int intervals, double e
       }
       predictor.Add(positions + correction, motion, weights, true);
       for (int k = 1; k <= count; ++k) {
-        out->push_back(solver.Solve((end + direction * k) * step, predictor, reports[t]).correction);
+        out->push_back(
+            solver.Refined((end + direction * (k - 1)) * step, (end + direction * k) * step, predictor, reports[t])
+                .correction);
       }
     };
     std::vector<Eigen::MatrixXf> beyond_one, before_zero;
