@@ -26,6 +26,7 @@
 #include <ctime>
 #include <exception>
 #include <filesystem>
+#include <functional>
 #include <fstream>
 #include <iostream>
 #include <map>
@@ -365,8 +366,10 @@ std::shared_ptr<const Rig> BuildRig(const RowSpec& spec, RowResult* result) {
   return rig;
 }
 
-// Fills *result step by step, so whatever was measured before an exception stays in the report.
-void MeasureRow(const RowSpec& spec, const Settings& settings, RowResult* result) {
+// Fills *result step by step, so whatever was measured before an exception stays in the report, and calls
+// checkpoint after every pass (the reports are then rewritten, so a run that is stopped keeps its passes).
+void MeasureRow(const RowSpec& spec, const Settings& settings, RowResult* result,
+                const std::function<void()>& checkpoint) {
   std::cerr << fmt::format("[{}] building the rig\n", spec.name);
   const auto rig = BuildRig(spec, result);
   std::cerr << fmt::format("[{}] rig built in {:.0f} ms ({:.0f} ms of paths), {} vertices\n", spec.name,
@@ -386,6 +389,7 @@ void MeasureRow(const RowSpec& spec, const Settings& settings, RowResult* result
         SweepPass(rig, ReferenceOptions(), frames, spec.name + " reference", nullptr, &reference_positions);
     reference = &reference_positions;
     if (!result->reference->all_converged()) result->note = "reference not fully converged";
+    checkpoint();
   }
   std::vector<Config> configs;
   for (const std::string& method : settings.methods) configs.push_back(MethodConfig(method));
@@ -394,27 +398,36 @@ void MeasureRow(const RowSpec& spec, const Settings& settings, RowResult* result
     result->methods.push_back({config, std::nullopt, std::nullopt});
     MethodResult& m = result->methods.back();
     m.alone = AlonePass(rig, config.options, frames, spec.name + " " + config.name + " alone", reference);
+    checkpoint();
     // The baseline is measured alone only (it is the slowest configuration, and the speed-up uses alone).
     if (!config.baseline) {
       m.sweep = SweepPass(rig, config.options, frames, spec.name + " " + config.name + " sweep", reference,
                           nullptr);
+      checkpoint();
     }
   }
   result->linear_ms = LinearBlendMedianMs(*rig, frames);
 }
 
-RowResult RunRow(const RowSpec& spec, const Settings& settings) {
-  RowResult result;
+void RunRow(const RowSpec& spec, const Settings& settings, RowResult& result,
+            const std::function<void()>& checkpoint) {
   result.name = spec.name;
   result.paper = spec.paper;
   if (const auto missing = MissingFile(spec)) {
     result.skipped = true;
     result.note = "skipped: missing " + missing->string();
-    return result;
+    return;
   }
   result.peak_is_row = ResetPeakRss();
+  constexpr const char* kIncomplete = "incomplete: stopped while measuring";
+  result.note = kIncomplete;  // what a report written before the row ends says
   try {
-    MeasureRow(spec, settings, &result);
+    MeasureRow(spec, settings, &result, [&] {
+      result.max_rss_mb = MaxRssMb();
+      result.peak_rss_mb = result.peak_is_row ? StatusMb("VmHWM") : std::optional<double>(result.max_rss_mb);
+      checkpoint();
+    });
+    if (result.note == kIncomplete) result.note.clear();
   } catch (const Error& e) {
     result.failed = true;
     result.note = fmt::format("error ({}): {}", ToString(e.code()), e.what());
@@ -424,7 +437,6 @@ RowResult RunRow(const RowSpec& spec, const Settings& settings) {
   }
   result.max_rss_mb = MaxRssMb();
   result.peak_rss_mb = result.peak_is_row ? StatusMb("VmHWM") : std::optional<double>(result.max_rss_mb);
-  return result;
 }
 
 // ---- Machine description ---------------------------------------------------------------------------------
@@ -888,8 +900,9 @@ int Run(const Settings& settings) {
   const Machine machine = DescribeMachine(settings.repo);
   std::vector<RowResult> rows;
   for (const RowSpec& spec : specs) {
-    rows.push_back(RunRow(spec, settings));
-    // After every row, so a long run that is stopped keeps the rows it finished.
+    // Reports are written after every pass and every row, so a long run that is stopped keeps what it measured.
+    rows.emplace_back();
+    RunRow(spec, settings, rows.back(), [&] { WriteReports(machine, settings, rows); });
     WriteReports(machine, settings, rows);
   }
   PlotMsPerStep(rows, settings);
