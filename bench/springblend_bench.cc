@@ -640,7 +640,9 @@ std::string GrowthText(const std::vector<RowResult>& rows, const Settings& setti
   const auto growth = CostGrowth(rows);
   if (!growth) return "Cost growth: fewer than two rows with distinct vertex counts measured.\n";
   std::vector<std::string> points;
-  for (const auto& [name, p] : growth->points) points.push_back(fmt::format("{} {} / {:.1f} ms", name, p.first, p.second));
+  for (const auto& [name, p] : growth->points) {
+    points.push_back(fmt::format("{} {} / {:.1f} ms", name, p.first, p.second));
+  }
   return fmt::format(
       "Cost growth ({}, ms per frame alone, median, against simulated vertices; least-squares slope of the logs "
       "over {} rows): **exponent {:.2f}** ({}).\n",
@@ -797,7 +799,9 @@ json JsonReport(const Machine& machine, const Settings& settings, const std::vec
   for (const RowResult& row : rows) report["rows"].push_back(RowJson(row));
   if (const auto growth = CostGrowth(rows)) {
     json points = json::array();
-    for (const auto& [name, p] : growth->points) points.push_back({{"row", name}, {"vertices", p.first}, {"ms", p.second}});
+    for (const auto& [name, p] : growth->points) {
+      points.push_back({{"row", name}, {"vertices", p.first}, {"ms", p.second}});
+    }
     report["cost_growth"] = {{"method", settings.methods.front()}, {"exponent", growth->exponent}, {"points", points}};
   }
   return report;
