@@ -1,15 +1,28 @@
 #!/usr/bin/env bash
 # The benchmark in one command: installs the dependencies (Debian 12), builds the bench configuration, runs
-# springblend-bench (the paper's Table 1 protocol on every row whose meshes are present) and the service
-# throughput script, and writes bench-results/{bench.md,bench.json,ms_per_step.png,service.md}.
-#   bash bench/run.sh [springblend-bench options, e.g. --rows face,horse --steps 36]
+# springblend-bench (every row whose meshes are present; per row the three solve methods side by side and the
+# direct-Newton baseline on the same frames), the slider drag through a server (bench/slider.py) and the
+# service throughput script, and writes bench-results/{bench.md,bench.json,ms_per_step.png,slider.md,
+# slider.json,service.md}.
+#   bash bench/run.sh [springblend-bench options, e.g. --rows face,horse --steps 36 --shared DIR]
 set -euo pipefail
 cd "$(dirname "$0")/.."
 bash deploy/install-deps.sh
 cmake -S . -B build/bench -G Ninja -DCMAKE_BUILD_TYPE=Release -DSPRINGBLEND_BUILD_BENCH=ON \
   -DSPRINGBLEND_BUILD_TESTS=OFF > /dev/null
-cmake --build build/bench --target springblend-bench springblend springblend-server -j "$(nproc)"
+cmake --build build/bench --target springblend-bench springblend springblend-server springblend-tetgen \
+  springblend_python -j "$(nproc)"
+# The slider drag reads the shared meshes from the same place as springblend-bench.
+shared="$(cd .. && pwd)/shared/meshes"
+args=("$@")
+for ((i = 0; i < ${#args[@]}; i++)); do
+  case "${args[i]}" in
+    --shared) shared="${args[i + 1]:-$shared}" ;;
+    --shared=*) shared="${args[i]#--shared=}" ;;
+  esac
+done
 status=0
 build/bench/bench/springblend-bench --out bench-results "$@" || status=$?
+/usr/bin/python3 bench/slider.py --build build/bench --out bench-results --shared "$shared" || status=$?
 bash bench/service.sh build/bench bench-results
 exit "$status"

@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # Service throughput: frames per second through springblend-server with 1, 2 and 4 concurrent streams on the
-# bundled ICT face (neutral to jawOpen, the paper's protocol: a warm-started sweep of STEPS frames per stream),
+# bundled ICT face (neutral to jawOpen, the paper's protocol: a sweep of STEPS frames per stream, every frame stateless),
 # and the server's overhead over the same sweep solved locally by `springblend blend`.
 #   bash bench/service.sh [BUILD_DIR (default build/bench)] [OUT_DIR (default bench-results)]
 # Environment: STEPS (default 36), STREAMS (default "1 2 4").
@@ -79,7 +79,7 @@ print(f'{100 * (float(one) * 1000 - local_ms) / local_ms:.1f} %' if one else '-'
   echo
   echo "machine: nproc $(nproc), $(grep -m1 'model name' /proc/cpuinfo | cut -d: -f2 | sed 's/^ //'), $(date -u '+%Y-%m-%d %H:%M UTC'), git $(git describe --always --dirty 2>/dev/null || echo n/a)"
   echo
-  echo "Bundled ICT face (neutral to jawOpen), $steps-frame warm-started sweeps, one per stream, through a server on"
+  echo "Bundled ICT face (neutral to jawOpen), $steps-frame sweeps, one per stream, through a server on"
   echo "loopback (default workers = cores). Wall time from starting the clients to the last frame."
   echo
   echo "| streams | frames | wall s | frames/s | ms per frame per stream |"

@@ -1,26 +1,39 @@
-// springblend-bench: the paper's timing protocol (Ma et al., Table 1) on the bundled and the shared meshes.
-// For every row: build the rig (the precompute), then solve the interpolation from the rest shape to the
-// target in N frames (SweepFrames: frame 0 is alpha 0), warm-started, once with the default solver and once
-// with the baseline configuration; compare every frame with a tightly converged reference sweep; time the
-// linear blendshape. Writes OUT/bench.md, OUT/bench.json and a plot of ms per step (gnuplot, when installed),
-// and prints the Markdown table.
+// springblend-bench: per row (the paper's Table 1 characters) and per solve method, on the same frames of the
+// paper's sweep (N frames from the rest shape to the target, SweepFrames: frame 0 is alpha 0):
+//   - every frame 1..N-1 solved alone, by a fresh Solver (median, p95, max ms), and the frames solved in order
+//     by one Solver (median ms per step); frames are stateless, so the two differ only by what a Solver builds
+//     on first use (the Laplacian's factor of newton-laplacian and lbfgs) and by warm caches;
+//   - iterations and the time split per frame, from the alone pass;
+//   - accuracy against a tightly converged reference of the same frames (direct Newton, 1e-12);
+//   - the direct-Newton baseline (a fresh factorization and a direct solve per Newton iteration), alone, and
+//     every method's speed-up over it;
+//   - the upload (rig build and its path part), the rig's memory (resident-set growth over the build) and the
+//     row's peak resident set;
+// and, after the tables, the cost-growth exponent (least-squares slope of log ms per frame alone of the first
+// method against log vertices). Writes OUT/bench.md, OUT/bench.json (every frame's summary) and a plot of ms
+// per frame (first method, alone) with gnuplot when installed, and prints the Markdown.
 #include <fmt/format.h>
+#include <malloc.h>
+#include <sys/resource.h>
 
 #include <CLI/CLI.hpp>
 #include <algorithm>
 #include <array>
 #include <chrono>
+#include <cmath>
 #include <cstdio>
 #include <cstdlib>
 #include <ctime>
 #include <exception>
 #include <filesystem>
+#include <functional>
 #include <fstream>
 #include <iostream>
 #include <map>
 #include <memory>
 #include <nlohmann/json.hpp>
 #include <optional>
+#include <sstream>
 #include <string>
 #include <thread>
 #include <vector>
@@ -44,14 +57,7 @@ double MsSince(Clock::time_point start) {
 
 // ---- Solver configurations -------------------------------------------------------------------------------
 
-// The solver as shipped: what the ms/step columns measure.
-std::string g_method = "newton";
-SolveOptions DefaultOptions() {
-  SolveOptions options;
-  options.method = SolveMethodFromString(g_method);
-  return options;
-}
-// --residual-tolerance / --step-tolerance override the default solver's (and the baseline's) tolerances.
+// --residual-tolerance / --step-tolerance override the measured methods' (and the baseline's) tolerances.
 std::optional<double> g_residual_tolerance, g_step_tolerance;
 SolveOptions WithTolerances(SolveOptions options) {
   if (g_residual_tolerance) options.residual_tolerance = *g_residual_tolerance;
@@ -59,16 +65,29 @@ SolveOptions WithTolerances(SolveOptions options) {
   return options;
 }
 
-// The "direct Newton" baseline the speed-up is measured against, run in the same process on the same sweep:
-// the paper's method, warm-started from the previous frame, with a fresh factorization and a direct solve
-// in every Newton iteration (and the same line search and Hessian choice as the default solver).
-SolveOptions BaselineOptions() {
+// A measured configuration: a solve method with the shipped options, or the baseline.
+struct Config {
+  std::string name;
   SolveOptions options;
-  options.reuse_factorization = false;
-  return options;
+  bool baseline = false;
+};
+
+Config MethodConfig(const std::string& method) {
+  SolveOptions options;
+  options.method = SolveMethodFromString(method);
+  return {ToString(options.method), WithTolerances(options), false};
 }
 
-// The reference every frame is compared with: the same sweep converged far below the default tolerances.
+// The "direct Newton" baseline the speed-up is measured against, on the same frames from the same start:
+// the paper's method, a fresh factorization and a direct solve in every Newton iteration (same line search
+// and Hessian choice as the default solver).
+Config BaselineConfig() {
+  SolveOptions options;
+  options.reuse_factorization = false;
+  return {"direct-newton", WithTolerances(options), true};
+}
+
+// The reference every frame is compared with: direct Newton converged far below the default tolerances.
 SolveOptions ReferenceOptions() {
   SolveOptions options;
   options.reuse_factorization = false;
@@ -126,29 +145,101 @@ std::optional<fs::path> MissingFile(const RowSpec& spec) {
   return std::nullopt;
 }
 
+// ---- Memory ----------------------------------------------------------------------------------------------
+
+// A line "Key:   123 kB" of /proc/self/status, in MB; nullopt where /proc is not there.
+std::optional<double> StatusMb(const std::string& key) {
+  std::ifstream status("/proc/self/status");
+  std::string line;
+  while (std::getline(status, line)) {
+    if (line.rfind(key + ":", 0) == 0) {
+      std::istringstream fields(line.substr(key.size() + 1));
+      double kb = 0.0;
+      if (fields >> kb) return kb / 1024.0;
+    }
+  }
+  return std::nullopt;
+}
+
+// Resets the process's resident-set high-water mark (VmHWM), so each row's peak is its own. False where the
+// kernel does not allow it; the row's peak is then the process's so far.
+bool ResetPeakRss() { return static_cast<bool>(std::ofstream("/proc/self/clear_refs") << "5" << std::flush); }
+
+double MaxRssMb() {
+  rusage usage{};
+  getrusage(RUSAGE_SELF, &usage);
+  return static_cast<double>(usage.ru_maxrss) / 1024.0;
+}
+
 // ---- Measurements ----------------------------------------------------------------------------------------
 
-// Figures of one pass over the sweep. Frame 0 (alpha 0, the rest shape) starts the sweep and is not an
-// interpolation step, so the step figures leave it out; the termination counts include every frame.
-struct StepStats {
-  double median_ms = 0.0;
-  double max_ms = 0.0;
-  double mean_newton_iterations = 0.0;
-  double mean_factorizations = 0.0;
-  int max_inverted_tetrahedra = 0;
-  std::map<Termination, int> terminations;
+double Median(std::vector<double> values) {
+  if (values.empty()) return 0.0;
+  std::sort(values.begin(), values.end());
+  const size_t n = values.size();
+  return n % 2 == 1 ? values[n / 2] : 0.5 * (values[n / 2 - 1] + values[n / 2]);
+}
 
+// Nearest-rank percentile (p in (0, 100]).
+double Percentile(std::vector<double> values, double p) {
+  if (values.empty()) return 0.0;
+  std::sort(values.begin(), values.end());
+  const auto rank = static_cast<size_t>(std::ceil(p / 100.0 * static_cast<double>(values.size())));
+  return values[std::clamp<size_t>(rank, 1, values.size()) - 1];
+}
+
+// One pass over frames: each frame's index in the sweep, wall time of its Solve call (alone: with the fresh
+// Solver's construction), and summary.
+struct Pass {
+  std::vector<int> frame;
+  std::vector<double> ms;
+  std::vector<SolveSummary> summaries;
+  double accuracy = 0.0;  // max over the pass's frames of the max vertex distance to the reference / diagonal
+  bool has_accuracy = false;
+
+  // Figures over the sweep's frames 1..N-1 (frame 0, the rest shape, only starts a sweep).
+  std::vector<double> StepMs() const {
+    std::vector<double> out;
+    for (size_t i = 0; i < ms.size(); ++i) {
+      if (frame[i] > 0) out.push_back(ms[i]);
+    }
+    return out;
+  }
+  template <typename F>
+  double MeanOverSteps(F&& value) const {
+    double sum = 0.0;
+    int count = 0;
+    for (size_t i = 0; i < summaries.size(); ++i) {
+      if (frame[i] > 0) {
+        sum += static_cast<double>(value(summaries[i]));
+        ++count;
+      }
+    }
+    return count > 0 ? sum / count : 0.0;
+  }
+  std::map<Termination, int> Terminations() const {
+    std::map<Termination, int> counts;
+    for (const SolveSummary& s : summaries) ++counts[s.termination];
+    return counts;
+  }
   bool all_converged() const {
-    return std::all_of(terminations.begin(), terminations.end(),
-                       [](const auto& entry) { return entry.first == Termination::kConverged; });
+    return std::all_of(summaries.begin(), summaries.end(),
+                       [](const SolveSummary& s) { return s.termination == Termination::kConverged; });
   }
 };
 
-// One solver's pass over the sweep.
-struct SweepRun {
-  std::vector<double> ms;  // wall time of each frame's Solve call
-  std::vector<SolveSummary> summaries;
-  StepStats stats;
+struct MethodResult {
+  Config config;
+  std::optional<Pass> alone, sweep;
+
+  std::optional<double> accuracy() const {
+    std::optional<double> worst;
+    for (const auto* pass : {&alone, &sweep}) {
+      if (*pass && (*pass)->has_accuracy) worst = std::max(worst.value_or(0.0), (*pass)->accuracy);
+    }
+    return worst;
+  }
+  bool ok() const { return (!alone || alone->all_converged()) && (!sweep || sweep->all_converged()); }
 };
 
 struct RowResult {
@@ -159,77 +250,93 @@ struct RowResult {
   std::string note;
   std::optional<RigSummary> rig;
   double build_ms = 0.0;
-  std::optional<SweepRun> measured, baseline, reference;
-  std::optional<double> accuracy;   // max over frames of the max vertex distance to the reference / diagonal
-  std::optional<double> linear_ms;  // linear blendshape, median per step
+  std::optional<double> rig_mb;       // resident-set growth over Rig::Build (an estimate of the rig's size)
+  std::optional<double> peak_rss_mb;  // the row's peak resident set (VmHWM after a reset), or the process's
+  bool peak_is_row = false;
+  double max_rss_mb = 0.0;  // getrusage ru_maxrss after the row (the process's peak so far)
+  std::optional<Pass> reference;
+  std::vector<MethodResult> methods;  // the measured methods in --method order, then the baseline
+  std::optional<double> linear_ms;    // linear blendshape, median per frame
 
+  const MethodResult* baseline() const {
+    for (const MethodResult& m : methods) {
+      if (m.config.baseline) return &m;
+    }
+    return nullptr;
+  }
   bool ok() const {
-    return !failed && (skipped || (measured && measured->stats.all_converged() && baseline &&
-                                   baseline->stats.all_converged()));
+    return !failed && std::all_of(methods.begin(), methods.end(), [](const MethodResult& m) { return m.ok(); });
   }
 };
 
 struct Settings {
   std::vector<std::string> rows;  // empty: every row
+  std::vector<std::string> methods = {"newton", "newton-laplacian", "lbfgs"};
   int steps = 36;
-  bool quick = false;  // also: no reference sweep, so no accuracy column
-  bool profile = false;  // only the default sweep: no baseline, no reference (for perf record)
+  bool quick = false;    // also: no reference, so no accuracy column
+  bool profile = false;  // only the first method's sweep: no alone pass, baseline or reference (perf record)
   fs::path repo = SPRINGBLEND_SOURCE_DIR;
   fs::path shared;  // default: <repo>/../shared/meshes
   fs::path out = "bench-results";
 };
 
-double Median(std::vector<double> values) {
-  if (values.empty()) return 0.0;
-  std::sort(values.begin(), values.end());
-  const size_t n = values.size();
-  return n % 2 == 1 ? values[n / 2] : 0.5 * (values[n / 2 - 1] + values[n / 2]);
+std::string LogLine(const std::string& what, int frame, int frames, double ms, const SolveSummary& s) {
+  return fmt::format(
+      "  {} frame {}/{}: {:.1f} ms, {} Newton, {} CG, {} L-BFGS, {} fallbacks, {} factorizations; split spring "
+      "{:.1f} solve {:.1f} search {:.1f} factor {:.1f} ms; {}\n",
+      what, frame, frames - 1, ms, s.newton_iterations, s.cg_iterations, s.lbfgs_iterations, s.newton_fallbacks,
+      s.factorizations, s.spring_ms, s.linear_solve_ms, s.line_search_ms, s.factorize_ms, ToString(s.termination));
 }
 
-StepStats ComputeStats(const std::vector<double>& ms, const std::vector<SolveSummary>& summaries) {
-  StepStats stats;
-  for (const SolveSummary& s : summaries) ++stats.terminations[s.termination];
-  const std::vector<double> step_ms(ms.begin() + 1, ms.end());
-  stats.median_ms = Median(step_ms);
-  stats.max_ms = *std::max_element(step_ms.begin(), step_ms.end());
-  for (size_t i = 1; i < summaries.size(); ++i) {
-    stats.mean_newton_iterations += summaries[i].newton_iterations;
-    stats.mean_factorizations += summaries[i].factorizations;
-    stats.max_inverted_tetrahedra = std::max(stats.max_inverted_tetrahedra, summaries[i].inverted_tetrahedra);
-  }
-  stats.mean_newton_iterations /= static_cast<double>(step_ms.size());
-  stats.mean_factorizations /= static_cast<double>(step_ms.size());
-  return stats;
+// Compares one frame's surface positions with the reference's, relative to the diagonal.
+double Distance(const Points& a, const Points& b, double diagonal) {
+  return (a - b).rowwise().norm().maxCoeff() / diagonal;
 }
 
-// Solves the sweep with a fresh solver (warm-started frame to frame when the options say so, as in the
-// paper) and keeps every frame's surface positions in *positions when that is given.
-SweepRun RunSweep(const std::shared_ptr<const Rig>& rig, const SolveOptions& options,
-                  const std::vector<Frame>& frames, const std::string& what, std::vector<Points>* positions) {
+// Frames solved in order by one Solver (frame_ids: which of `frames`); keeps positions in *positions when
+// given, compares with *reference when given (indexed like `frames`).
+Pass SweepPass(const std::shared_ptr<const Rig>& rig, const SolveOptions& options, const std::vector<Frame>& frames,
+               const std::string& what, const std::vector<Points>* reference, std::vector<Points>* positions) {
   Solver solver(rig, options);
-  SweepRun run;
+  Pass pass;
   Points frame_positions;
+  const double diagonal = BoundingBoxDiagonal(rig->rest().vertices);
   for (size_t i = 0; i < frames.size(); ++i) {
     const auto start = Clock::now();
     const SolveSummary summary = solver.Solve(frames[i], &frame_positions);
-    run.ms.push_back(MsSince(start));
-    run.summaries.push_back(summary);
+    pass.ms.push_back(MsSince(start));
+    pass.frame.push_back(static_cast<int>(i));
+    pass.summaries.push_back(summary);
     if (positions != nullptr) positions->push_back(frame_positions);
-    std::cerr << fmt::format("  {} frame {}/{}: {:.1f} ms, {} Newton iterations, {} factorizations ({:.1f} ms), "
-                             "{} CG iterations, {} L-BFGS, {} fallbacks, split spring {:.1f} solve {:.1f} search {:.1f} ms, {}\n",
-                             what, i, frames.size() - 1, run.ms.back(), summary.newton_iterations,
-                             summary.factorizations, summary.factorize_ms, summary.cg_iterations,
-                             summary.lbfgs_iterations, summary.newton_fallbacks, summary.spring_ms,
-                             summary.linear_solve_ms, summary.line_search_ms, ToString(summary.termination));
+    if (reference != nullptr) {
+      pass.accuracy = std::max(pass.accuracy, Distance(frame_positions, (*reference)[i], diagonal));
+      pass.has_accuracy = true;
+    }
+    std::cerr << LogLine(what, static_cast<int>(i), static_cast<int>(frames.size()), pass.ms.back(), summary);
   }
-  run.stats = ComputeStats(run.ms, run.summaries);
-  return run;
+  return pass;
 }
 
-double MaxRelativeDistance(const std::vector<Points>& a, const std::vector<Points>& b, double diagonal) {
-  double worst = 0.0;
-  for (size_t i = 0; i < a.size(); ++i) worst = std::max(worst, (a[i] - b[i]).rowwise().norm().maxCoeff());
-  return worst / diagonal;
+// Frames 1..N-1, each by a fresh Solver (its construction and first-use setup included in the time).
+Pass AlonePass(const std::shared_ptr<const Rig>& rig, const SolveOptions& options, const std::vector<Frame>& frames,
+               const std::string& what, const std::vector<Points>* reference) {
+  Pass pass;
+  Points frame_positions;
+  const double diagonal = BoundingBoxDiagonal(rig->rest().vertices);
+  for (size_t i = 1; i < frames.size(); ++i) {
+    const auto start = Clock::now();
+    Solver solver(rig, options);
+    const SolveSummary summary = solver.Solve(frames[i], &frame_positions);
+    pass.ms.push_back(MsSince(start));
+    pass.frame.push_back(static_cast<int>(i));
+    pass.summaries.push_back(summary);
+    if (reference != nullptr) {
+      pass.accuracy = std::max(pass.accuracy, Distance(frame_positions, (*reference)[i], diagonal));
+      pass.has_accuracy = true;
+    }
+    std::cerr << LogLine(what, static_cast<int>(i), static_cast<int>(frames.size()), pass.ms.back(), summary);
+  }
+  return pass;
 }
 
 double LinearBlendMedianMs(const Rig& rig, const std::vector<Frame>& frames) {
@@ -246,43 +353,81 @@ std::shared_ptr<const Rig> BuildRig(const RowSpec& spec, RowResult* result) {
   TriangleMesh rest = LoadMesh((spec.dir / spec.rest).string());
   std::vector<TriangleMesh> targets;
   for (const auto& target : spec.targets) targets.push_back(LoadMesh((spec.dir / target).string()));
+  malloc_trim(0);
+  const std::optional<double> before = StatusMb("VmRSS");
   const auto start = Clock::now();
   auto rig = Rig::Build(std::move(rest), std::move(targets));
   result->build_ms = MsSince(start);
+  malloc_trim(0);
+  const std::optional<double> after = StatusMb("VmRSS");
+  // The meshes moved into the rig were counted before the build; the rest is what the build added.
+  if (before && after) result->rig_mb = std::max(0.0, *after - *before);
   result->rig = rig->summary();
   return rig;
 }
 
-// Fills *result step by step, so whatever was measured before an exception stays in the report.
-void MeasureRow(const RowSpec& spec, const Settings& settings, RowResult* result) {
+// Fills *result step by step, so whatever was measured before an exception stays in the report, and calls
+// checkpoint after every pass (the reports are then rewritten, so a run that is stopped keeps its passes).
+void MeasureRow(const RowSpec& spec, const Settings& settings, RowResult* result,
+                const std::function<void()>& checkpoint) {
   std::cerr << fmt::format("[{}] building the rig\n", spec.name);
   const auto rig = BuildRig(spec, result);
+  std::cerr << fmt::format("[{}] rig built in {:.0f} ms ({:.0f} ms of paths), {} vertices\n", spec.name,
+                           result->build_ms, result->rig->path_ms, result->rig->vertices);
   const std::vector<Frame> frames = SweepFrames(spec.end_weights, settings.steps);
-  std::vector<Points> measured_positions;
-  result->measured = RunSweep(rig, WithTolerances(DefaultOptions()), frames, spec.name + " default", &measured_positions);
-  if (settings.profile) return;
-  result->baseline = RunSweep(rig, WithTolerances(BaselineOptions()), frames, spec.name + " baseline", nullptr);
+  if (settings.profile) {
+    const Config config = MethodConfig(settings.methods.front());
+    result->methods.push_back({config, std::nullopt, SweepPass(rig, config.options, frames,
+                                                               spec.name + " " + config.name + " sweep", nullptr,
+                                                               nullptr)});
+    return;
+  }
+  std::vector<Points> reference_positions;
+  const std::vector<Points>* reference = nullptr;
   if (!settings.quick) {
-    std::vector<Points> reference_positions;
-    result->reference = RunSweep(rig, ReferenceOptions(), frames, spec.name + " reference", &reference_positions);
-    result->accuracy = MaxRelativeDistance(measured_positions, reference_positions,
-                                           BoundingBoxDiagonal(rig->rest().vertices));
-    if (!result->reference->stats.all_converged()) result->note = "reference sweep not fully converged";
+    result->reference =
+        SweepPass(rig, ReferenceOptions(), frames, spec.name + " reference", nullptr, &reference_positions);
+    reference = &reference_positions;
+    if (!result->reference->all_converged()) result->note = "reference not fully converged";
+    checkpoint();
+  }
+  std::vector<Config> configs;
+  for (const std::string& method : settings.methods) configs.push_back(MethodConfig(method));
+  configs.push_back(BaselineConfig());
+  for (const Config& config : configs) {
+    result->methods.push_back({config, std::nullopt, std::nullopt});
+    MethodResult& m = result->methods.back();
+    m.alone = AlonePass(rig, config.options, frames, spec.name + " " + config.name + " alone", reference);
+    checkpoint();
+    // The baseline is measured alone only (it is the slowest configuration, and the speed-up uses alone).
+    if (!config.baseline) {
+      m.sweep = SweepPass(rig, config.options, frames, spec.name + " " + config.name + " sweep", reference,
+                          nullptr);
+      checkpoint();
+    }
   }
   result->linear_ms = LinearBlendMedianMs(*rig, frames);
 }
 
-RowResult RunRow(const RowSpec& spec, const Settings& settings) {
-  RowResult result;
+void RunRow(const RowSpec& spec, const Settings& settings, RowResult& result,
+            const std::function<void()>& checkpoint) {
   result.name = spec.name;
   result.paper = spec.paper;
   if (const auto missing = MissingFile(spec)) {
     result.skipped = true;
     result.note = "skipped: missing " + missing->string();
-    return result;
+    return;
   }
+  result.peak_is_row = ResetPeakRss();
+  constexpr const char* kIncomplete = "incomplete: stopped while measuring";
+  result.note = kIncomplete;  // what a report written before the row ends says
   try {
-    MeasureRow(spec, settings, &result);
+    MeasureRow(spec, settings, &result, [&] {
+      result.max_rss_mb = MaxRssMb();
+      result.peak_rss_mb = result.peak_is_row ? StatusMb("VmHWM") : std::optional<double>(result.max_rss_mb);
+      checkpoint();
+    });
+    if (result.note == kIncomplete) result.note.clear();
   } catch (const Error& e) {
     result.failed = true;
     result.note = fmt::format("error ({}): {}", ToString(e.code()), e.what());
@@ -290,7 +435,8 @@ RowResult RunRow(const RowSpec& spec, const Settings& settings) {
     result.failed = true;
     result.note = fmt::format("internal error: {}", e.what());
   }
-  return result;
+  result.max_rss_mb = MaxRssMb();
+  result.peak_rss_mb = result.peak_is_row ? StatusMb("VmHWM") : std::optional<double>(result.max_rss_mb);
 }
 
 // ---- Machine description ---------------------------------------------------------------------------------
@@ -339,6 +485,41 @@ Machine DescribeMachine(const fs::path& repo) {
   return machine;
 }
 
+// ---- Cost growth -----------------------------------------------------------------------------------------
+
+struct Growth {
+  double exponent = 0.0;
+  std::vector<std::pair<std::string, std::pair<int, double>>> points;  // row, (vertices, ms)
+};
+
+// Least-squares slope of log(ms per frame alone, first method, median) against log(vertices) over the rows
+// measured; nullopt with fewer than two distinct vertex counts.
+std::optional<Growth> CostGrowth(const std::vector<RowResult>& rows) {
+  Growth growth;
+  for (const RowResult& row : rows) {
+    if (!row.rig || row.methods.empty() || !row.methods.front().alone) continue;
+    const double ms = Median(row.methods.front().alone->StepMs());
+    if (ms > 0.0) growth.points.push_back({row.name, {row.rig->vertices, ms}});
+  }
+  double mx = 0.0, my = 0.0;
+  for (const auto& [name, p] : growth.points) {
+    mx += std::log(p.first);
+    my += std::log(p.second);
+  }
+  const double n = static_cast<double>(growth.points.size());
+  if (n < 2) return std::nullopt;
+  mx /= n;
+  my /= n;
+  double sxx = 0.0, sxy = 0.0;
+  for (const auto& [name, p] : growth.points) {
+    sxx += (std::log(p.first) - mx) * (std::log(p.first) - mx);
+    sxy += (std::log(p.first) - mx) * (std::log(p.second) - my);
+  }
+  if (sxx <= 0.0) return std::nullopt;
+  growth.exponent = sxy / sxx;
+  return growth;
+}
+
 // ---- Markdown --------------------------------------------------------------------------------------------
 
 template <typename T, typename Format>
@@ -346,11 +527,15 @@ std::string Cell(const std::optional<T>& value, Format&& format) {
   return value ? format(*value) : "-";
 }
 
-std::string Terminations(const StepStats& stats) {
-  std::vector<std::string> parts;
-  for (const auto& [termination, count] : stats.terminations) {
-    parts.push_back(fmt::format("{} {}", ToString(termination), count));
+std::string TerminationCell(const MethodResult& m) {
+  std::map<Termination, int> counts;
+  for (const auto* pass : {&m.alone, &m.sweep}) {
+    if (*pass) {
+      for (const auto& [t, c] : (*pass)->Terminations()) counts[t] += c;
+    }
   }
+  std::vector<std::string> parts;
+  for (const auto& [termination, count] : counts) parts.push_back(fmt::format("{} {}", ToString(termination), count));
   return fmt::format("{}", fmt::join(parts, ", "));
 }
 
@@ -367,37 +552,33 @@ std::string Escape(const std::string& text) {
   return escaped;
 }
 
-// The table's columns; TableRow gives one cell per column, in this order.
-const std::vector<std::string> kColumns = {
-    "row", "vertices", "springs", "tets", "interior", "precompute ms", "ms/step median", "ms/step max",
-    "Newton it/step", "factorizations/step", "inverted tets max", "accuracy", "linear ms/step",
-    "baseline ms/step", "speed-up", "terminations", "paper CPU s/step", "note"};
+std::string Header(const std::vector<std::string>& columns) {
+  return fmt::format("| {} |\n|{}\n", fmt::join(columns, " | "),
+                     fmt::join(std::vector<std::string>(columns.size(), "---|"), ""));
+}
 
-std::string TableRow(const RowResult& r) {
-  const auto stats = [](const std::optional<SweepRun>& run) {
-    return run ? std::optional<StepStats>(run->stats) : std::nullopt;
-  };
-  const auto measured = stats(r.measured);
-  const auto baseline = stats(r.baseline);
-  const std::string speedup =
-      measured && baseline ? fmt::format("{:.1f}x", baseline->median_ms / measured->median_ms) : "-";
+const std::vector<std::string> kRowColumns = {
+    "row", "vertices", "surface", "springs", "tets", "interior", "upload ms", "paths ms", "path samples",
+    "rig MB", "peak RSS MB", "linear ms", "paper CPU s/step", "note"};
+
+std::string RowLine(const RowResult& r) {
   const std::vector<std::string> cells = {
       r.name,
       Cell(r.rig, [](const RigSummary& s) { return std::to_string(s.vertices); }),
+      Cell(r.rig, [](const RigSummary& s) { return std::to_string(s.surface_vertices); }),
       Cell(r.rig, [](const RigSummary& s) { return std::to_string(s.springs); }),
       Cell(r.rig, [](const RigSummary& s) { return std::to_string(s.tetrahedra); }),
       Cell(r.rig, [](const RigSummary& s) { return s.interior; }),
       Cell(r.rig, [&](const RigSummary&) { return fmt::format("{:.0f}", r.build_ms); }),
-      Cell(measured, [](const StepStats& s) { return fmt::format("{:.1f}", s.median_ms); }),
-      Cell(measured, [](const StepStats& s) { return fmt::format("{:.1f}", s.max_ms); }),
-      Cell(measured, [](const StepStats& s) { return fmt::format("{:.2f}", s.mean_newton_iterations); }),
-      Cell(measured, [](const StepStats& s) { return fmt::format("{:.2f}", s.mean_factorizations); }),
-      Cell(measured, [](const StepStats& s) { return std::to_string(s.max_inverted_tetrahedra); }),
-      Cell(r.accuracy, [](double a) { return fmt::format("{:.1e}", a); }),
+      Cell(r.rig, [](const RigSummary& s) { return fmt::format("{:.0f}", s.path_ms); }),
+      Cell(r.rig, [](const RigSummary& s) {
+        return s.unconverged_path_samples > 0 ? fmt::format("{} ({} unconverged)", s.path_samples,
+                                                            s.unconverged_path_samples)
+                                              : std::to_string(s.path_samples);
+      }),
+      Cell(r.rig_mb, [](double mb) { return fmt::format("{:.0f}", mb); }),
+      r.skipped ? "-" : Cell(r.peak_rss_mb, [](double mb) { return fmt::format("{:.0f}", mb); }),
       Cell(r.linear_ms, [](double ms) { return fmt::format("{:.3f}", ms); }),
-      Cell(baseline, [](const StepStats& s) { return fmt::format("{:.1f}", s.median_ms); }),
-      speedup,
-      Cell(measured, Terminations),
       Cell(r.paper, [](const PaperFigure& p) {
         return fmt::format("{:.2f} s ({:.1f}k, {:.1f}k)", p.cpu_s_per_step, p.vertices_k, p.springs_k);
       }),
@@ -406,20 +587,97 @@ std::string TableRow(const RowResult& r) {
   return fmt::format("| {} |", fmt::join(cells, " | "));
 }
 
+const std::vector<std::string> kMethodColumns = {
+    "row", "method", "alone ms median", "alone p95", "alone max", "sweep ms/step", "speed-up", "Newton it",
+    "CG it", "L-BFGS it", "fallbacks", "factorizations", "spring ms", "solve ms", "search ms", "factor ms",
+    "accuracy", "terminations"};
+
+std::string MethodLine(const RowResult& r, const MethodResult& m) {
+  const auto f1 = [](double v) { return fmt::format("{:.1f}", v); };
+  const auto f2 = [](double v) { return fmt::format("{:.2f}", v); };
+  std::optional<double> median, p95, max, sweep;
+  if (m.alone) {
+    const auto ms = m.alone->StepMs();
+    median = Median(ms);
+    p95 = Percentile(ms, 95.0);
+    max = *std::max_element(ms.begin(), ms.end());
+  }
+  if (m.sweep) sweep = Median(m.sweep->StepMs());
+  std::string speedup = "-";
+  const MethodResult* base = r.baseline();
+  if (median && base && base->alone && *median > 0.0) {
+    speedup = fmt::format("{:.1f}x", Median(base->alone->StepMs()) / *median);
+  }
+  // Iterations and the split: from the alone pass (the sweep pass when there is none, as with --profile).
+  const Pass* pass = m.alone ? &*m.alone : (m.sweep ? &*m.sweep : nullptr);
+  const auto mean = [&](auto&& value) -> std::optional<double> {
+    return pass ? std::optional<double>(pass->MeanOverSteps(value)) : std::nullopt;
+  };
+  const std::vector<std::string> cells = {
+      r.name,
+      m.config.name,
+      Cell(median, f1),
+      Cell(p95, f1),
+      Cell(max, f1),
+      Cell(sweep, f1),
+      speedup,
+      Cell(mean([](const SolveSummary& s) { return s.newton_iterations; }), f2),
+      Cell(mean([](const SolveSummary& s) { return s.cg_iterations; }), f2),
+      Cell(mean([](const SolveSummary& s) { return s.lbfgs_iterations; }), f2),
+      Cell(mean([](const SolveSummary& s) { return s.newton_fallbacks; }), f2),
+      Cell(mean([](const SolveSummary& s) { return s.factorizations; }), f2),
+      Cell(mean([](const SolveSummary& s) { return s.spring_ms; }), f1),
+      Cell(mean([](const SolveSummary& s) { return s.linear_solve_ms; }), f1),
+      Cell(mean([](const SolveSummary& s) { return s.line_search_ms; }), f1),
+      Cell(mean([](const SolveSummary& s) { return s.factorize_ms; }), f1),
+      Cell(m.accuracy(), [](double a) { return fmt::format("{:.1e}", a); }),
+      TerminationCell(m),
+  };
+  return fmt::format("| {} |", fmt::join(cells, " | "));
+}
+
+std::string GrowthText(const std::vector<RowResult>& rows, const Settings& settings) {
+  const auto growth = CostGrowth(rows);
+  if (!growth) return "Cost growth: fewer than two rows with distinct vertex counts measured.\n";
+  std::vector<std::string> points;
+  for (const auto& [name, p] : growth->points) {
+    points.push_back(fmt::format("{} {} / {:.1f} ms", name, p.first, p.second));
+  }
+  return fmt::format(
+      "Cost growth ({}, ms per frame alone, median, against simulated vertices; least-squares slope of the logs "
+      "over {} rows): **exponent {:.2f}** ({}).\n",
+      settings.methods.front(), growth->points.size(), growth->exponent, fmt::join(points, "; "));
+}
+
 std::string MarkdownReport(const Machine& machine, const Settings& settings, const std::vector<RowResult>& rows) {
   std::string md = "# springblend-bench\n\n";
   md += fmt::format("machine: nproc {}, {}, date {}, git {}\n\n", machine.nproc, machine.cpu, machine.date,
                     machine.git);
   md += fmt::format(
-      "Protocol (paper Table 1): {} frames from the rest shape (frame 0, alpha 0) to the target, warm-started. "
-      "Step figures are over frames 1..{} (time of each Solve call); terminations count every frame. "
-      "Accuracy: max over frames of the max vertex distance to a reference sweep (residual and step "
-      "tolerance 1e-12), relative to the bounding-box diagonal{}. Speed-up: baseline median / default median. "
-      "Paper: 2.66 GHz Core 2 Quad, PARDISO, s/step (vertices, springs).\n\n",
-      settings.steps, settings.steps - 1, settings.quick ? " (skipped: --quick)" : "");
-  md += fmt::format("| {} |\n", fmt::join(kColumns, " | "));
-  md += fmt::format("|{}\n", fmt::join(std::vector<std::string>(kColumns.size(), "---|"), ""));
-  for (const RowResult& row : rows) md += TableRow(row) + "\n";
+      "Frames: the paper's sweep, {} frames from the rest shape (frame 0) to the target; figures over frames "
+      "1..{}. Every frame is stateless (starts from the rig's prediction for its weights). **alone**: each frame "
+      "by a fresh Solver (construction and first-use setup, such as the Laplacian's factor, included); "
+      "**sweep**: one Solver solving the frames in order, median ms per step. Terminations count the alone "
+      "and the sweep frames. Iterations and the time split "
+      "(spring passes, linear solves, line search, factorizations) are means per frame of the alone pass. "
+      "Speed-up: direct-newton (a fresh factorization and a direct solve per Newton iteration) alone median "
+      "over the method's alone median. Accuracy: max over frames (alone and sweep) of the max vertex distance "
+      "to a reference of the same frames (direct Newton, residual and step tolerance 1e-12){}, over the "
+      "bounding-box diagonal.{}\n\n",
+      settings.steps, settings.steps - 1, settings.quick ? " (skipped: --quick)" : "",
+      settings.profile ? " --profile: only the first method's sweep." : "");
+  md += Header(kMethodColumns);
+  for (const RowResult& row : rows) {
+    for (const MethodResult& m : row.methods) md += MethodLine(row, m) + "\n";
+  }
+  md += "\n" + GrowthText(rows, settings) + "\n";
+  md += "Per row: upload = Rig::Build wall time (paths ms: the targets' path corrections, part of it); rig MB = "
+        "resident-set growth over the build (an estimate of the rig's memory); peak RSS = the process's "
+        "resident high-water mark during the row (reset per row; rows run one after another in one process); "
+        "linear = the linear blendshape, median ms per frame; paper: 2.66 GHz Core 2 Quad, PARDISO, s/step "
+        "(vertices, springs).\n\n";
+  md += Header(kRowColumns);
+  for (const RowResult& row : rows) md += RowLine(row) + "\n";
   return md;
 }
 
@@ -440,32 +698,50 @@ json RigJson(const RigSummary& s) {
           {"boundary_mode", ToString(s.boundary_mode)},
           {"hessian_nonzeros", s.hessian_nonzeros},
           {"precompute_ms", s.precompute_ms},
+          {"path_ms", s.path_ms},
+          {"path_samples", s.path_samples},
+          {"unconverged_path_samples", s.unconverged_path_samples},
           {"notes", s.notes}};
 }
 
-json RunJson(const SweepRun& run) {
+json SummaryJson(const SolveSummary& s) {
+  return {{"termination", ToString(s.termination)},
+          {"message", s.message},
+          {"newton_iterations", s.newton_iterations},
+          {"cg_iterations", s.cg_iterations},
+          {"lbfgs_iterations", s.lbfgs_iterations},
+          {"newton_fallbacks", s.newton_fallbacks},
+          {"factorizations", s.factorizations},
+          {"projected_factorizations", s.projected_factorizations},
+          {"shifted_factorizations", s.shifted_factorizations},
+          {"line_search_halvings", s.line_search_halvings},
+          {"initial_residual", s.initial_residual},
+          {"residual", s.residual},
+          {"last_step", s.last_step},
+          {"energy", s.energy},
+          {"inverted_tetrahedra", s.inverted_tetrahedra},
+          {"solve_ms", s.solve_ms},
+          {"spring_ms", s.spring_ms},
+          {"linear_solve_ms", s.linear_solve_ms},
+          {"line_search_ms", s.line_search_ms},
+          {"factorize_ms", s.factorize_ms}};
+}
+
+json PassJson(const Pass& pass) {
+  const auto ms = pass.StepMs();
   json terminations = json::object();
-  for (const auto& [termination, count] : run.stats.terminations) terminations[ToString(termination)] = count;
+  for (const auto& [termination, count] : pass.Terminations()) terminations[ToString(termination)] = count;
   json frames = json::array();
-  for (size_t i = 0; i < run.summaries.size(); ++i) {
-    const SolveSummary& s = run.summaries[i];
-    frames.push_back({{"frame", i},
-                      {"ms", run.ms[i]},
-                      {"solve_ms", s.solve_ms},
-                      {"factorize_ms", s.factorize_ms},
-                      {"newton_iterations", s.newton_iterations},
-                      {"factorizations", s.factorizations},
-                      {"cg_iterations", s.cg_iterations},
-                      {"line_search_halvings", s.line_search_halvings},
-                      {"residual", s.residual},
-                      {"inverted_tetrahedra", s.inverted_tetrahedra},
-                      {"termination", ToString(s.termination)}});
+  for (size_t i = 0; i < pass.summaries.size(); ++i) {
+    json frame = SummaryJson(pass.summaries[i]);
+    frame["frame"] = pass.frame[i];
+    frame["ms"] = pass.ms[i];
+    frames.push_back(frame);
   }
-  return {{"median_ms", run.stats.median_ms},
-          {"max_ms", run.stats.max_ms},
-          {"mean_newton_iterations", run.stats.mean_newton_iterations},
-          {"mean_factorizations", run.stats.mean_factorizations},
-          {"max_inverted_tetrahedra", run.stats.max_inverted_tetrahedra},
+  return {{"median_ms", Median(ms)},
+          {"p95_ms", Percentile(ms, 95.0)},
+          {"max_ms", ms.empty() ? 0.0 : *std::max_element(ms.begin(), ms.end())},
+          {"accuracy", pass.has_accuracy ? json(pass.accuracy) : json(nullptr)},
           {"terminations", terminations},
           {"frames", frames}};
 }
@@ -477,16 +753,33 @@ json OrNull(const std::optional<T>& value, ToJson&& to_json) {
 
 json RowJson(const RowResult& r) {
   const auto identity = [](double x) { return json(x); };
+  json methods = json::array();
+  const MethodResult* base = r.baseline();
+  for (const MethodResult& m : r.methods) {
+    json speedup = nullptr;
+    if (m.alone && base && base->alone) speedup = Median(base->alone->StepMs()) / Median(m.alone->StepMs());
+    methods.push_back({{"method", m.config.name},
+                       {"baseline", m.config.baseline},
+                       {"reuse_factorization", m.config.options.reuse_factorization},
+                       {"residual_tolerance", m.config.options.residual_tolerance},
+                       {"step_tolerance", m.config.options.step_tolerance},
+                       {"alone", OrNull(m.alone, PassJson)},
+                       {"sweep", OrNull(m.sweep, PassJson)},
+                       {"accuracy", OrNull(m.accuracy(), identity)},
+                       {"speedup_over_baseline", speedup}});
+  }
   return {{"name", r.name},
           {"skipped", r.skipped},
           {"failed", r.failed},
           {"note", r.note},
           {"rig", OrNull(r.rig, RigJson)},
           {"build_ms", r.rig ? json(r.build_ms) : json(nullptr)},
-          {"default", OrNull(r.measured, RunJson)},
-          {"baseline", OrNull(r.baseline, RunJson)},
-          {"reference", OrNull(r.reference, RunJson)},
-          {"accuracy", OrNull(r.accuracy, identity)},
+          {"rig_mb", OrNull(r.rig_mb, identity)},
+          {"peak_rss_mb", OrNull(r.peak_rss_mb, identity)},
+          {"peak_rss_is_row", r.peak_is_row},
+          {"ru_maxrss_mb", r.max_rss_mb},
+          {"reference", OrNull(r.reference, PassJson)},
+          {"methods", methods},
           {"linear_ms", OrNull(r.linear_ms, identity)},
           {"paper", OrNull(r.paper, [](const PaperFigure& p) {
              return json{{"cpu_s_per_step", p.cpu_s_per_step},
@@ -500,25 +793,42 @@ json JsonReport(const Machine& machine, const Settings& settings, const std::vec
                   {{"nproc", machine.nproc}, {"cpu", machine.cpu}, {"date", machine.date}, {"git", machine.git}}},
                  {"steps", settings.steps},
                  {"quick", settings.quick},
+                 {"profile", settings.profile},
+                 {"methods", settings.methods},
                  {"rows", json::array()}};
   for (const RowResult& row : rows) report["rows"].push_back(RowJson(row));
+  if (const auto growth = CostGrowth(rows)) {
+    json points = json::array();
+    for (const auto& [name, p] : growth->points) {
+      points.push_back({{"row", name}, {"vertices", p.first}, {"ms", p.second}});
+    }
+    report["cost_growth"] = {{"method", settings.methods.front()}, {"exponent", growth->exponent}, {"points", points}};
+  }
   return report;
 }
 
 // ---- Plot ------------------------------------------------------------------------------------------------
 
-// Writes the data and the gnuplot script (kept so the plot can be redrawn elsewhere) and runs gnuplot when
-// it is installed. The plot is a convenience: nothing here fails the run.
-void PlotMsPerStep(const std::vector<RowResult>& rows, const fs::path& out) {
+// ms per frame against the frame, first method, frames solved alone (the sweep's ms with --profile). Writes
+// the data and the gnuplot script (kept so the plot can be redrawn elsewhere) and runs gnuplot when it is
+// installed. The plot is a convenience: nothing here fails the run.
+void PlotMsPerStep(const std::vector<RowResult>& rows, const Settings& settings) {
+  const fs::path& out = settings.out;
   std::ofstream data(out / "ms_per_step.dat");
   std::vector<std::string> plots;
-  size_t steps = 1;
+  int steps = 1;
   for (const RowResult& row : rows) {
-    if (!row.measured) continue;
-    steps = std::max(steps, row.measured->ms.size() - 1);
+    if (row.methods.empty()) continue;
+    const MethodResult& m = row.methods.front();
+    const Pass* pass = m.alone ? &*m.alone : (m.sweep ? &*m.sweep : nullptr);
+    if (pass == nullptr) continue;
     // gnuplot's `index` counts blocks separated by two blank lines.
     data << "# " << row.name << "\n";
-    for (size_t i = 1; i < row.measured->ms.size(); ++i) data << i << " " << row.measured->ms[i] << "\n";
+    for (size_t i = 0; i < pass->ms.size(); ++i) {
+      if (pass->frame[i] == 0) continue;
+      steps = std::max(steps, pass->frame[i]);
+      data << pass->frame[i] << " " << pass->ms[i] << "\n";
+    }
     data << "\n\n";
     plots.push_back(fmt::format("'ms_per_step.dat' index {} using 1:2 with linespoints title '{}'", plots.size(),
                                 row.name));
@@ -530,18 +840,19 @@ void PlotMsPerStep(const std::vector<RowResult>& rows, const fs::path& out) {
   }
   std::ofstream script(out / "ms_per_step.gp");
   script << "if (strstrt(GPVAL_TERMINALS, 'pngcairo') > 0) {\n"
-            "  set terminal pngcairo size 1000,600\n"
+            "  set terminal pngcairo size 800,450\n"
             "} else {\n"
-            "  set terminal png size 1000,600\n"
+            "  set terminal png size 800,450\n"
             "}\n"
             "set output 'ms_per_step.png'\n"
-            "set title 'springblend: ms per interpolation step (default solver)'\n"
-            "set xlabel 'frame (alpha = frame / (steps - 1))'\n"
+         << fmt::format("set title 'springblend: ms per frame ({}, each frame solved alone)'\n",
+                        settings.profile ? settings.methods.front() + " sweep" : settings.methods.front())
+         << "set xlabel 'frame (alpha = frame / (steps - 1))'\n"
             "set ylabel 'ms (log scale)'\n"
             "set logscale y\n"
             "set grid\n"
             "set key outside right noenhanced\n"
-         << fmt::format("set xtics {}\n", std::max<size_t>(1, steps / 12))  // whole frames, about a dozen
+         << fmt::format("set xtics {}\n", std::max(1, steps / 12))  // whole frames, about a dozen
          << "plot " << fmt::format("{}", fmt::join(plots, ", \\\n     ")) << "\n";
   script.close();
   if (std::system("command -v gnuplot >/dev/null 2>&1") != 0) {
@@ -580,10 +891,11 @@ std::vector<RowSpec> SelectRows(const Settings& settings) {
   return selected;
 }
 
-// Exit status: 0 when every selected row was measured and converged (or skipped for lack of files),
-// 1 when a row failed or a frame did not converge, 2 for bad options.
+// Exit status: 0 when every selected row was measured and every frame of every method converged (or the row
+// was skipped for lack of files), 1 when a row failed or a frame did not converge, 2 for bad options.
 int Run(const Settings& settings) {
   const std::vector<RowSpec> specs = SelectRows(settings);
+  for (const std::string& method : settings.methods) SolveMethodFromString(method);  // bad names fail first
   std::error_code ec;
   fs::create_directories(settings.out, ec);
   if (ec || !fs::is_directory(settings.out)) {
@@ -592,11 +904,12 @@ int Run(const Settings& settings) {
   const Machine machine = DescribeMachine(settings.repo);
   std::vector<RowResult> rows;
   for (const RowSpec& spec : specs) {
-    rows.push_back(RunRow(spec, settings));
-    // After every row, so a long run that is stopped keeps the rows it finished.
+    // Reports are written after every pass and every row, so a long run that is stopped keeps what it measured.
+    rows.emplace_back();
+    RunRow(spec, settings, rows.back(), [&] { WriteReports(machine, settings, rows); });
     WriteReports(machine, settings, rows);
   }
-  PlotMsPerStep(rows, settings.out);
+  PlotMsPerStep(rows, settings);
   std::cout << MarkdownReport(machine, settings, rows);
   const bool ok = std::all_of(rows.begin(), rows.end(), [](const RowResult& row) { return row.ok(); });
   return ok ? 0 : 1;
@@ -604,20 +917,23 @@ int Run(const Settings& settings) {
 
 int Main(int argc, char** argv) {
   Settings settings;
-  CLI::App app{"springblend-bench: the paper's timing protocol (36 warm-started steps from the rest shape to "
-               "the target) on the bundled and the shared meshes"};
+  CLI::App app{"springblend-bench: per row and per solve method, the paper's sweep's frames solved alone and in "
+               "order, against direct Newton and a tightly converged reference"};
   app.add_option("--rows", settings.rows,
                  "comma-separated subset of: cylinder, cube, cheburashka, face, face-mix, horse, cat")
       ->delimiter(',');
   CLI::Option* steps = app.add_option("--steps", settings.steps, "frames per sweep, including frame 0 (default 36)")
                            ->check(CLI::Range(2, 100000));
-  app.add_flag("--quick", settings.quick, "6 frames (unless --steps is given) and no reference sweep");
+  app.add_flag("--quick", settings.quick, "6 frames (unless --steps is given) and no reference");
   app.add_flag("--profile", settings.profile,
-               "run only the default solver's sweep (no baseline, no reference), e.g. under perf record");
+               "run only the first method's sweep (no alone pass, baseline or reference), e.g. under perf record");
   app.add_option("--repo", settings.repo, "the springblend source tree (for tests/data and git describe)");
   app.add_option("--shared", settings.shared, "the shared meshes (default: <repo>/../shared/meshes)");
   app.add_option("--out", settings.out, "output directory for bench.md, bench.json and the plot");
-  app.add_option("--method", g_method, "the measured solve method: newton, newton-laplacian or lbfgs");
+  app.add_option("--method", settings.methods,
+                 "comma-separated solve methods to measure side by side (newton, newton-laplacian, lbfgs; default "
+                 "all three); the first is the plot's and the growth exponent's")
+      ->delimiter(',');
   app.add_option("--residual-tolerance", g_residual_tolerance, "override SolveOptions::residual_tolerance");
   app.add_option("--step-tolerance", g_step_tolerance, "override SolveOptions::step_tolerance");
   try {
@@ -627,6 +943,10 @@ int Main(int argc, char** argv) {
   }
   if (settings.quick && steps->count() == 0) settings.steps = 6;
   if (settings.shared.empty()) settings.shared = settings.repo / ".." / "shared" / "meshes";
+  if (settings.methods.empty()) {
+    std::cerr << "springblend-bench: --method needs at least one method\n";
+    return 2;
+  }
   try {
     return Run(settings);
   } catch (const std::exception& e) {
