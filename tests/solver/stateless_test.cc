@@ -106,8 +106,6 @@ INSTANTIATE_TEST_SUITE_P(
         StatelessCase{"cheburashka", false, "cheburashka/cheburashka.obj", {"cheburashka/poses-1_cheburashka-1.obj"},
                       {1.0}},
         StatelessCase{"face_jawOpen", false, "face/generic_neutral_mesh.obj", {"face/jawOpen.obj"}, {1.0}},
-        StatelessCase{"shared_face_mouthSmile_L", true, "face6706/generic_neutral_mesh.obj",
-                      {"face6706/mouthSmile_L.obj"}, {1.0}},
         StatelessCase{"shared_face_mix", true, "face6706/generic_neutral_mesh.obj",
                       {"face6706/jawOpen.obj", "face6706/mouthSmile_L.obj", "face6706/mouthSmile_R.obj",
                        "face6706/eyeBlink_L.obj", "face6706/browInnerUp_L.obj"},
