@@ -10,20 +10,6 @@
 
 namespace springblend::internal {
 
-namespace {
-
-double LongestMove(const Eigen::VectorXd& step) {
-  double longest = 0.0;
-  for (Eigen::Index v = 0; v < step.size() / 3; ++v) longest = std::max(longest, step.segment<3>(3 * v).squaredNorm());
-  return std::sqrt(longest);
-}
-
-double Elapsed(std::chrono::steady_clock::time_point since) {
-  return std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - since).count();
-}
-
-}  // namespace
-
 void Lbfgs::Direction(const MinimizerProblem& problem, const Eigen::VectorXd& gradient, Eigen::VectorXd* direction) {
   q_ = gradient;
   alpha_.resize(pairs_.size());
@@ -33,7 +19,7 @@ void Lbfgs::Direction(const MinimizerProblem& problem, const Eigen::VectorXd& gr
   }
   const auto start = std::chrono::steady_clock::now();
   problem.laplacian->Apply(q_, *problem.held, &z_);
-  problem.timing->solve_ms += Elapsed(start);
+  problem.timing->solve_ms += ElapsedMs(start);
   for (size_t i = 0; i < pairs_.size(); ++i) {
     const double beta = pairs_[i].rho * pairs_[i].y.dot(z_);
     z_ += (alpha_[i] - beta) * pairs_[i].s;
@@ -56,7 +42,7 @@ void Lbfgs::Minimize(const MinimizerProblem& problem, Eigen::VectorXd* x_ptr, Mi
   auto clock = std::chrono::steady_clock::now();
   double residual = springs.Evaluate(x, held, curvature, false);
   double energy = springs.Energy(x);
-  timing.spring_ms += Elapsed(clock);
+  timing.spring_ms += ElapsedMs(clock);
   if (summary->iterations == 0) summary->initial_residual = residual;
   Eigen::VectorXd gradient = -springs.force(), direction, trial, previous_gradient;
   double last_step = 0.0;
@@ -113,7 +99,7 @@ void Lbfgs::Minimize(const MinimizerProblem& problem, Eigen::VectorXd* x_ptr, Mi
         },
         [&] { return springs.Evaluate(trial, held, curvature, false); });
     summary->line_search_halvings += found.halvings;
-    timing.line_search_ms += Elapsed(clock);
+    timing.line_search_ms += ElapsedMs(clock);
     if (!found.accepted) {
       hand_over = true;
       break;
@@ -124,7 +110,7 @@ void Lbfgs::Minimize(const MinimizerProblem& problem, Eigen::VectorXd* x_ptr, Mi
     x.swap(trial);
     energy = found.energy;
     residual = found.residual >= 0.0 ? found.residual : springs.Evaluate(x, held, curvature, false);
-    timing.spring_ms += Elapsed(clock);
+    timing.spring_ms += ElapsedMs(clock);
     gradient = -springs.force();
     pair.y = gradient - previous_gradient;
     const double ys = pair.y.dot(pair.s);

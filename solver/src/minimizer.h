@@ -4,6 +4,9 @@
 #pragma once
 
 #include <Eigen/Core>
+#include <algorithm>
+#include <chrono>
+#include <cmath>
 #include <memory>
 #include <string>
 #include <vector>
@@ -77,6 +80,18 @@ struct MinimizerTiming {
 };
 
 class LaplacianPreconditioner;
+
+// Milliseconds since a point in time (the minimizers' time split).
+inline double ElapsedMs(std::chrono::steady_clock::time_point since) {
+  return std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - since).count();
+}
+
+// The longest move of one vertex in a stacked 3n step (steps are clamped by it).
+inline double LongestMove(const Eigen::VectorXd& step) {
+  double longest = 0.0;
+  for (Eigen::Index v = 0; v < step.size() / 3; ++v) longest = std::max(longest, step.segment<3>(3 * v).squaredNorm());
+  return std::sqrt(longest);
+}
 
 // One frame's problem: its springs (rest lengths set), held coordinates and their linear algebra.
 struct MinimizerProblem {

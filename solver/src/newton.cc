@@ -17,16 +17,6 @@ namespace {
 constexpr double kNoProgress = 1e-15;  // a step this short (of the diagonal) changes nothing
 constexpr double kMaxForcing = 0.1;    // the loosest relative accuracy of a linear solve
 
-double Elapsed(std::chrono::steady_clock::time_point since) {
-  return std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - since).count();
-}
-
-double LongestMove(const Eigen::VectorXd& step) {
-  double longest = 0.0;
-  for (Eigen::Index v = 0; v < step.size() / 3; ++v) longest = std::max(longest, step.segment<3>(3 * v).squaredNorm());
-  return std::sqrt(longest);
-}
-
 }  // namespace
 
 std::unique_ptr<Minimizer> Minimizer::Create(const MinimizerOptions& options) {
@@ -58,8 +48,8 @@ bool InexactNewton::FactorizeAndSolve(const MinimizerProblem& problem, const Eig
   summary->factorizations += ladder.factorizations;
   summary->projected_factorizations += ladder.projected;
   summary->shifted_factorizations += ladder.shifted;
-  summary->factorize_ms += Elapsed(factor_start);
-  problem.timing->factorize_ms += Elapsed(factor_start);
+  summary->factorize_ms += ElapsedMs(factor_start);
+  problem.timing->factorize_ms += ElapsedMs(factor_start);
   if (ladder.status != FactorStatus::kOk) {
     summary->message = "the Hessian could not be factorized even with a diagonal shift";
     return false;
@@ -70,7 +60,7 @@ bool InexactNewton::FactorizeAndSolve(const MinimizerProblem& problem, const Eig
   // iterate before any matrix-free product reads them.
   const auto solve_start = std::chrono::steady_clock::now();
   linear.Solve(springs.force(), held, &step_);
-  problem.timing->solve_ms += Elapsed(solve_start);
+  problem.timing->solve_ms += ElapsedMs(solve_start);
   if (!step_.allFinite()) {
     summary->message = "the Newton step is not finite";
     return false;
@@ -109,7 +99,7 @@ ConjugateGradientsStatus InexactNewton::ConjugateGradientStep(const MinimizerPro
       has_negative_direction_ = true;
     }
   }
-  problem.timing->solve_ms += Elapsed(start);
+  problem.timing->solve_ms += ElapsedMs(start);
   return status;
 }
 
@@ -127,7 +117,7 @@ bool InexactNewton::LaplacianDirection(const MinimizerProblem& problem, const Ei
   if (options_.hessian == HessianChoice::kAbsolute) return false;
   const auto start = std::chrono::steady_clock::now();
   springs.Evaluate(x, held, CurvatureAt(0.0));
-  problem.timing->spring_ms += Elapsed(start);
+  problem.timing->spring_ms += ElapsedMs(start);
   const bool ok = usable(ConjugateGradientStep(problem, forcing, summary));
   if (options_.hessian == HessianChoice::kTrueWithProjectedFallback) springs.Evaluate(x, held, CurvatureAt(1.0));
   return ok;
@@ -180,7 +170,7 @@ void InexactNewton::Minimize(const MinimizerProblem& problem, Eigen::VectorXd* x
   double residual = springs.Evaluate(x, held, CurvatureAt(1.0));
   if (summary->iterations == 0) summary->initial_residual = residual;
   double energy = springs.Energy(x);
-  timing.spring_ms += Elapsed(clock);
+  timing.spring_ms += ElapsedMs(clock);
   double forcing = kMaxForcing;
   double previous_norm = 0.0;
   summary->termination = MinimizerTermination::kMaxIterations;
@@ -246,7 +236,7 @@ void InexactNewton::Minimize(const MinimizerProblem& problem, Eigen::VectorXd* x
         },
         [&] { return springs.Evaluate(trial_, held, CurvatureAt(1.0)); });
     summary->line_search_halvings += found.halvings;
-    timing.line_search_ms += Elapsed(clock);
+    timing.line_search_ms += ElapsedMs(clock);
     if (!found.accepted) {
       springs.Evaluate(x, held, CurvatureAt(1.0));  // restore the forces of the current iterate
       if (residual <= options_.residual_tolerance) {
@@ -262,7 +252,7 @@ void InexactNewton::Minimize(const MinimizerProblem& problem, Eigen::VectorXd* x
     energy = found.energy;
     clock = std::chrono::steady_clock::now();
     residual = found.residual >= 0.0 ? found.residual : springs.Evaluate(x, held, CurvatureAt(1.0));
-    timing.spring_ms += Elapsed(clock);
+    timing.spring_ms += ElapsedMs(clock);
 
     last_step = found.step * step_.lpNorm<Eigen::Infinity>();
     summary->last_step = last_step / diagonal;
