@@ -11,6 +11,7 @@
 #include <vector>
 
 #include "commands.h"
+#include "frame_output.h"
 #include "scene.h"
 #include "collider_syntax.h"
 #include "springblend/error.h"
@@ -147,7 +148,6 @@ int RunBlend(const BlendArgs& args) {
                             rig->num_targets()));
   }
   if (args.frames_file.empty()) ValidateWeights(*rig, weights);
-  namespace fs = std::filesystem;
   const bool many = args.sweep > 0 || !args.frames_file.empty();
   if (!args.frames_file.empty()) {
     frames = std::move(scene.frames);
@@ -164,24 +164,17 @@ int RunBlend(const BlendArgs& args) {
       throw Error(e.code(), fmt::format("frames[{}]: {}", i, e.what()));
     }
   }
-  if (many) {
-    std::error_code ec;
-    fs::create_directories(args.out, ec);
-    if (ec || !fs::is_directory(args.out)) {
-      throw Error(ErrorCode::kInvalidInput, "cannot create the output directory " + args.out);
-    }
-  }
+  FrameOutput output(args.out, many, rig->rest().faces, static_cast<int>(rig->rest().vertices.rows()));
 
   bool all_converged = true;
   Points positions;
   for (size_t i = 0; i < frames.size(); ++i) {
     const SolveSummary summary = solver.Solve(frames[i], &positions);
     all_converged = all_converged && summary.converged();
-    const std::string path =
-        many ? (fs::path(args.out) / fmt::format("frame_{:04d}.obj", i)).string() : args.out;
-    WriteObj(path, positions, rig->rest().faces);
+    output.Write(static_cast<int>(i), positions);
     std::cout << FrameJson(*rig, summary, static_cast<int>(i), frames[i].weights).dump() << std::endl;
   }
+  output.Finish();
   return all_converged ? kExitOk : kExitNotConverged;
 }
 
@@ -199,7 +192,10 @@ Runner AddBlendCommand(CLI::App& app) {
                   "one weight per target, comma separated; the rest shape gets 1 - sum (default 1 for a "
                   "single target). With --sweep: the end of the sweep")
       ->delimiter(',');
-  cmd->add_option("--out", args->out, "output OBJ file, or directory with --sweep")->required();
+  cmd->add_option("--out", args->out,
+                  "output OBJ file, or directory with --sweep/--frames; a path ending in .pc2 writes every frame "
+                  "into one PC2 point cache instead (frame = index + 1)")
+      ->required();
   cmd->add_option("--sweep", args->sweep,
                   "solve N frames with alpha = 0 .. 1 times the weights, each alone, into "
                   "OUT/frame_0000.obj ...")

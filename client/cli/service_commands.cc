@@ -12,6 +12,7 @@
 #include <sstream>
 
 #include "commands.h"
+#include "frame_output.h"
 #include "scene.h"
 #include "springblend/client.h"
 #include "collider_syntax.h"
@@ -174,10 +175,7 @@ int RunSolve(const RemoteArgs& args) {
   request.mutable_options()->set_linear(args.linear);
   request.mutable_options()->set_with_normals(args.normals);
 
-  namespace fs = std::filesystem;
-  std::error_code ec;
-  fs::create_directories(args.out, ec);
-  if (ec || !fs::is_directory(args.out)) throw Error(ErrorCode::kInvalidInput, "cannot create the output directory " + args.out);
+  FrameOutput output(args.out, /*many=*/true, faces, static_cast<int>(character.summary().surface_vertices()));
   const bool progress = isatty(STDERR_FILENO) && isatty(STDOUT_FILENO);
   const auto start = std::chrono::steady_clock::now();
   bool all_converged = true;
@@ -186,8 +184,7 @@ int RunSolve(const RemoteArgs& args) {
     // When the frame arrived, from the start of the call (before the OBJ below is written).
     const double received_ms =
         std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - start).count();
-    WriteObj((fs::path(args.out) / fmt::format("frame_{:04d}.obj", frame.index())).string(),
-             Client::Decode(frame.positions()), faces);
+    output.Write(static_cast<int>(frame.index()), Client::Decode(frame.positions()));
     const v1::FrameSummary& s = frame.summary();
     all_converged = all_converged && s.converged();
     const nlohmann::json line = {{"frame", frame.index()}, {"converged", s.converged()},
@@ -208,6 +205,7 @@ int RunSolve(const RemoteArgs& args) {
     }
   });
   if (progress) std::cerr << "\n";
+  output.Finish();
   return all_converged ? kExitOk : kExitNotConverged;
 }
 
@@ -277,7 +275,8 @@ std::vector<std::pair<std::string, Runner>> AddServiceCommands(CLI::App& app) {
                    "build no target paths: a faster upload, slower frames (still stateless)");
   runners.emplace_back("upload", Guarded([args] { return RunUpload(*args); }));
 
-  CLI::App* solve = app.add_subcommand("solve", "solve frames on the server; writes OUT/frame_0000.obj ... and JSON lines");
+  CLI::App* solve = app.add_subcommand(
+      "solve", "solve frames on the server; writes OUT/frame_0000.obj ... (or OUT.pc2) and JSON lines");
   server_option(solve);
   solve->add_option("--character", args->character, "character id from upload")->required();
   solve->add_option("--weights", args->weights, "one weight per target (the sweep's end with --sweep)")->delimiter(',');
@@ -285,7 +284,10 @@ std::vector<std::pair<std::string, Runner>> AddServiceCommands(CLI::App& app) {
   solve->add_option("--frames", args->frames_file, "a JSON scene file (as for blend)");
   solve->add_option("--collider", args->colliders, "an obstacle (as for blend); repeatable");
   solve->add_option("--pin", args->pins, "VERTEX:x,y,z in every frame; repeatable");
-  solve->add_option("--out", args->out, "output directory")->required();
+  solve->add_option("--out", args->out,
+                    "output directory (OUT/frame_0000.obj ...), or a path ending in .pc2: one PC2 point cache of "
+                    "every frame (frame = index + 1)")
+      ->required();
   solve->add_option("--tolerance", args->tolerance, "residual tolerance (server default 1e-6)");
   solve->add_option("--max-iterations", args->max_iterations, "Newton iterations per frame");
   solve->add_flag("--linear", args->linear, "the linear blendshape");

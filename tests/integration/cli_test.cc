@@ -10,6 +10,7 @@
 #include <nlohmann/json.hpp>
 #include <sstream>
 
+#include "springblend/point_cache.h"
 #include "test_util.h"
 
 namespace springblend {
@@ -85,6 +86,37 @@ TEST(CliBlend, SweepWritesOneMeshAndOneLinePerFrameEndingOnTheTarget) {
   const TriangleMesh target = LoadMesh(kBend);
   EXPECT_LE(testing::MaxDistance(last.vertices, target.vertices),
             1e-6 * BoundingBoxDiagonal(target.vertices));
+}
+
+TEST(CliBlend, PointCacheOutputHoldsTheSameFramesAsTheObjFiles) {
+  TempDir dir;
+  const std::string args = "blend --rest " + kRest + " --target " + kBend + " --target " + kTwist +
+                           " --weights 0.9,0.4 --sweep 4 --collider sphere:-1.7,0.75,0.75,0.35 --out ";
+  const CliRun objs = RunCli(args + dir.File("objs"), dir);
+  ASSERT_EQ(objs.exit_code, 0) << objs.stderr_text;
+  const CliRun cache = RunCli(args + dir.File("shot.pc2"), dir);
+  ASSERT_EQ(cache.exit_code, 0) << cache.stderr_text;
+  ASSERT_EQ(cache.lines.size(), 4u);  // the JSON lines stay
+  EXPECT_FALSE(std::filesystem::exists(dir.File("shot.pc2.partial")));
+  const PointCache read = ReadPointCache(dir.File("shot.pc2"));
+  EXPECT_EQ(read.start_frame, 1.0f);  // frame = index + 1
+  EXPECT_EQ(read.sample_rate, 1.0f);
+  ASSERT_EQ(read.samples.size(), 4u);
+  for (int i = 0; i < 4; ++i) {
+    const Points obj = LoadMesh(dir.File("objs/frame_000" + std::to_string(i) + ".obj")).vertices;
+    // Both are the solve rounded to float32 (OBJ text is printed from the doubles and parsed as float32).
+    EXPECT_LE(testing::MaxDistance(read.samples[i], obj), 1e-6 * BoundingBoxDiagonal(obj)) << "frame " << i;
+  }
+  EXPECT_GT(testing::MaxDistance(read.samples[3], read.samples[0]), 0.1);
+  // One frame into a cache works too; a cache in a missing directory is the caller's mistake (exit 2).
+  EXPECT_EQ(RunCli("blend --rest " + kRest + " --target " + kBend + " --weights 0.5 --out " + dir.File("one.pc2"), dir)
+                .exit_code,
+            0);
+  EXPECT_EQ(ReadPointCache(dir.File("one.pc2")).samples.size(), 1u);
+  const CliRun nowhere =
+      RunCli("blend --rest " + kRest + " --target " + kBend + " --sweep 2 --out " + dir.File("no/dir/x.pc2"), dir);
+  EXPECT_EQ(nowhere.exit_code, 2);
+  EXPECT_THAT(nowhere.stderr_text, HasSubstr("no/dir/x.pc2"));
 }
 
 TEST(CliBlend, LinearFlagWritesTheLinearBlendshape) {

@@ -1,6 +1,8 @@
 """The springblend Python client against a real server: upload from arrays, solve into arrays equal to the
 C++ CLI's output, an interactive session, health, and errors carrying the server's status and message."""
 
+import json
+import os
 import tempfile
 import unittest
 
@@ -70,6 +72,25 @@ class ClientTest(unittest.TestCase):
                 ["sphere:{},{},{},{}".format(*BALL[0], BALL[1])], directory)
         error = np.abs(solution.positions - cli_positions).max()
         self.assertLessEqual(error, 1e-5 * self.diagonal)
+
+    def test_cli_and_python_point_caches_hold_the_solve(self):
+        weights = WEIGHTS
+        solution = self.client.solve(self.character.id, weights, colliders=[sphere(*BALL)])
+        with tempfile.TemporaryDirectory() as directory:
+            scene = os.path.join(directory, "scene.json")
+            with open(scene, "w") as out:
+                json.dump({"colliders": ["sphere:{},{},{},{}".format(*BALL[0], BALL[1])],
+                           "frames": [{"weights": w} for w in weights]}, out)
+            cli_cache = os.path.join(directory, "cli.pc2")
+            testing.cli("solve", "--server", self.server.address, "--character", self.character.id,
+                        "--frames", scene, "--out", cli_cache)
+            solution.write_pc2(os.path.join(directory, "python.pc2"))
+            from_cli = springblend.pointcache.read_pc2(cli_cache)
+            from_python = springblend.pointcache.read_pc2(os.path.join(directory, "python.pc2"))
+        for cache in (from_cli, from_python):
+            self.assertEqual((cache.start_frame, cache.sample_rate), (1.0, 1.0))
+            self.assertEqual(cache.positions.shape, (len(weights), len(self.rest), 3))
+            self.assertLessEqual(np.abs(cache.positions - solution.positions).max(), 1e-6 * self.diagonal)
 
     def test_solve_streams_frames_with_moving_colliders_and_pins(self):
         translations = [[(0.0, 0.0, 0.0), (1.0, 0.0, 0.0, 0.0)], [(0.1, 0.0, 0.0), (1.0, 0.0, 0.0, 0.0)]]

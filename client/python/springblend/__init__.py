@@ -9,13 +9,14 @@ Put the build's python directory (build/release/python) on sys.path, then:
         solution = client.solve(character.id, [[0.5, 0.0], [1.0, 0.2]],
                                 colliders=[springblend.colliders.sphere((0, 1, 0), 0.3)])
         solution.positions  # #frames by #V by 3 float32
+        solution.write_pc2("shot.pc2")  # a point cache for the DCC's Mesh Cache (frame = index + 1)
 """
 
-from springblend import colliders
+from springblend import colliders, pointcache
 from springblend._version import __version__
 from springblend._generated import pb
 from springblend.client import CHARACTER_HEADER, Client, InteractiveSession, Solution, SolvedFrame
 from springblend.errors import SpringblendError
 
 __all__ = ["CHARACTER_HEADER", "Client", "InteractiveSession", "Solution", "SolvedFrame", "SpringblendError",
-           "__version__", "colliders", "pb"]
+           "__version__", "colliders", "pb", "pointcache"]

@@ -11,7 +11,7 @@ import typing
 import grpc
 import numpy as np
 
-from springblend import arrays, colliders as shapes
+from springblend import arrays, colliders as shapes, pointcache
 from springblend._generated import health_pb2, pb, pb_grpc
 from springblend.errors import SpringblendError, invalid_argument
 
@@ -42,6 +42,11 @@ class Solution:
     def converged(self):
         """True when every frame's Newton solve converged."""
         return all(s.converged for s in self.summaries)
+
+    def write_pc2(self, path, start_frame=1.0, sample_rate=1.0):
+        """Writes the frames as a PC2 point cache (springblend.pointcache): frame i is sample i, played at
+        start_frame + i * sample_rate (by default frame = index + 1, as the CLI writes)."""
+        pointcache.write_pc2(path, self.positions, start_frame, sample_rate)
 
 
 class Client:
