@@ -1,101 +1,32 @@
 """Runs inside Blender (see bake_test.py): installs the add-on from its zip, builds the cylinder scene with
 shape keys and colliders, checks that errors come back as reports, uploads and bakes through the operators,
-and saves what Blender shows on each baked frame (#frames by #V by 3) for bake_test.py to compare.
+first into shape keys, then into a PC2 point cache next to the saved .blend played by a Mesh Cache modifier,
+and saves what Blender shows on each baked frame in both modes (#frames by #V by 3) for bake_test.py to compare.
 
 blender --background --factory-startup --python-exit-code 1 --python bake_in_blender.py -- CONFIG.json
 """
 
-import json
+import os
 import pathlib
 import sys
 
-import bmesh
 import bpy
 import numpy as np
 
-sys.path.insert(0, str(pathlib.Path(__file__).parents[1] / "python"))
-from springblend_testing import load_obj  # noqa: E402
-
-ADDON = "springblend_blender"
+sys.path.insert(0, str(pathlib.Path(__file__).parent))
+from blender_scene import check, expect_error_report, setup, shown_positions  # noqa: E402
 
 
-def check(condition, message):
-    if not condition:
-        raise AssertionError(message)
-
-
-def install_addon(zip_path):
-    bpy.ops.preferences.addon_install(filepath=zip_path, overwrite=True)
-    bpy.ops.preferences.addon_enable(module=ADDON)
-    check(ADDON in bpy.context.preferences.addons, "the add-on did not enable")
-
-
-def build_cylinder(config):
-    """The cylinder mesh with a Basis and one shape key per target, values keyed per frame."""
-    directory = pathlib.Path(config["cylinder"])
-    rest, faces = load_obj(directory / "cylinder.obj")
-    mesh = bpy.data.meshes.new("cylinder")
-    mesh.from_pydata(rest.tolist(), [], faces.tolist())
-    mesh.update()
-    obj = bpy.data.objects.new("Cylinder", mesh)
-    bpy.context.scene.collection.objects.link(obj)
-    obj.shape_key_add(name="Basis", from_mix=False)
-    for name in config["targets"]:
-        key = obj.shape_key_add(name=name, from_mix=False)
-        key.data.foreach_set("co", load_obj(directory / f"{name}.obj")[0].astype(np.float32).ravel())
-    for frame, weights in zip(config["frames"], config["weights"]):
-        for name, weight in zip(config["targets"], weights):
-            key = mesh.shape_keys.key_blocks[name]
-            key.value = weight
-            key.keyframe_insert("value", frame=frame)
-    bpy.context.view_layer.objects.active = obj
-    obj.select_set(True)
-    return obj
-
-
-def build_colliders(config):
-    """A 'Colliders' collection: a UV sphere ("Ball", keyed along its path) and a cube empty ("Crate")."""
-    collection = bpy.data.collections.new("Colliders")
-    bpy.context.scene.collection.children.link(collection)
-    ball_mesh = bpy.data.meshes.new("ball")
-    shape = bmesh.new()
-    bmesh.ops.create_uvsphere(shape, u_segments=16, v_segments=8, radius=1.0)
-    shape.to_mesh(ball_mesh)
-    shape.free()
-    ball = bpy.data.objects.new("Ball", ball_mesh)
-    collection.objects.link(ball)
-    ball.scale = (config["ball_radius"],) * 3
-    for frame, location in zip(config["frames"], config["ball_locations"]):
-        ball.location = location
-        ball.keyframe_insert("location", frame=frame)
-    crate = bpy.data.objects.new("Crate", None)
-    crate.empty_display_type = "CUBE"
-    crate.empty_display_size = 1.0
-    crate.scale = config["box_half_extents"]
-    crate.location = config["box_location"]
-    collection.objects.link(crate)
-    return collection
-
-
-def expect_error_report(operator, fragment):
-    """Runs an operator that must fail: Blender turns its ERROR report into a RuntimeError for scripts."""
-    try:
-        operator()
-    except RuntimeError as report:
-        check(fragment in str(report), f"expected '{fragment}' in the report, got: {report}")
-        check("Traceback" not in str(report), f"the report carries a traceback: {report}")
-        print(f"bake_in_blender: reported as expected: {str(report).strip()}")
-        return
-    raise AssertionError(f"{operator} should have failed with a report containing '{fragment}'")
+def shown_frames(scene, obj, frames):
+    shown = []
+    for frame in frames:
+        scene.frame_set(frame)
+        shown.append(shown_positions(obj))
+    return np.stack(shown)
 
 
 def main():
-    config = json.loads(pathlib.Path(sys.argv[sys.argv.index("--") + 1]).read_text())
-    install_addon(config["addon_zip"])
-    scene = bpy.context.scene
-    scene.frame_start, scene.frame_end = config["frames"][0], config["frames"][-1]
-    obj = build_cylinder(config)
-    scene.springblend.colliders = build_colliders(config)
+    config, scene, obj = setup()
 
     # Errors are reports: nobody listening; not uploaded yet.
     scene.springblend.server = "127.0.0.1:1"
@@ -109,6 +40,9 @@ def main():
     check(bpy.ops.springblend.check_server() == {"FINISHED"}, "check_server failed")
     check(bpy.ops.springblend.upload() == {"FINISHED"}, "upload failed")
     check(len(obj.springblend_character) == 64, "upload stored no character id")
+
+    # Shape keys: one corrective key per frame.
+    scene.springblend.bake_mode = "SHAPE_KEYS"
     check(bpy.ops.springblend.bake() == {"FINISHED"}, "bake failed")
     # Baking again replaces the keys of the first bake.
     check(bpy.ops.springblend.bake() == {"FINISHED"}, "second bake failed")
@@ -119,18 +53,32 @@ def main():
     character, obj.springblend_character = obj.springblend_character, "0" * 64
     expect_error_report(bpy.ops.springblend.bake, "NOT_FOUND")
     obj.springblend_character = character
+    np.save(config["output"], shown_frames(scene, obj, config["frames"]))
 
-    shown = []
-    for frame in config["frames"]:
-        scene.frame_set(frame)
-        evaluated = obj.evaluated_get(bpy.context.evaluated_depsgraph_get())
-        mesh = evaluated.to_mesh()
-        flat = np.empty(len(mesh.vertices) * 3, dtype=np.float32)
-        mesh.vertices.foreach_get("co", flat)
-        evaluated.to_mesh_clear()
-        shown.append(flat.reshape(-1, 3))
-    np.save(config["output"], np.stack(shown).astype(np.float64))
-    print("bake_in_blender: baked and saved", len(shown), "frames")
+    # Point cache: an unsaved .blend has no directory to put it next to.
+    scene.springblend.bake_mode = "POINT_CACHE"
+    expect_error_report(bpy.ops.springblend.bake, "save the .blend first")
+    bpy.ops.wm.save_as_mainfile(filepath=config["blend"])
+    check(bpy.ops.springblend.bake() == {"FINISHED"}, "point-cache bake failed")
+    cache = os.path.join(os.path.dirname(config["blend"]), "Cylinder.pc2")
+    check(os.path.isfile(cache), f"no point cache at {cache}")
+    modifiers = [(m.name, m.type) for m in obj.modifiers]
+    check(modifiers == [("springblend_cache", "MESH_CACHE")], f"unexpected modifiers {modifiers}")
+    modifier = obj.modifiers["springblend_cache"]
+    check(modifier.cache_format == "PC2" and modifier.filepath == "//Cylinder.pc2",
+          f"the modifier reads {modifier.cache_format} {modifier.filepath}")
+    leftover = [kb.name for kb in obj.data.shape_keys.key_blocks if kb.name.startswith("springblend_frame_")]
+    check(not leftover, f"the point-cache bake left the shape-key bake behind: {leftover}")
+    # Rebaking replaces the file and keeps one modifier; a failed bake (unknown character) leaves both.
+    check(bpy.ops.springblend.bake() == {"FINISHED"}, "second point-cache bake failed")
+    obj.springblend_character = "0" * 64
+    expect_error_report(bpy.ops.springblend.bake, "NOT_FOUND")
+    obj.springblend_character = character
+    check(len(obj.modifiers) == 1 and os.path.isfile(cache), "a failed bake removed the earlier point cache")
+    check(sorted(os.listdir(os.path.dirname(cache))) == sorted(["Cylinder.pc2", os.path.basename(config["blend"])]),
+          f"files beside the .blend: {os.listdir(os.path.dirname(cache))}")
+    np.save(config["output_cache"], shown_frames(scene, obj, config["frames"]))
+    print("bake_in_blender: baked and saved", len(config["frames"]), "frames in both modes")
 
 
 main()

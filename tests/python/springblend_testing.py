@@ -67,13 +67,13 @@ def bounding_box_diagonal(points):
 class Server:
     """springblend-server on 127.0.0.1 with a free port and a temporary cache directory; a context manager."""
 
-    def __init__(self, startup_seconds=30.0):
+    def __init__(self, startup_seconds=30.0, arguments=()):
         self.directory = tempfile.mkdtemp(prefix="springblend-test-")
         self.log_path = os.path.join(self.directory, "server.log")
         self._log = open(self.log_path, "w")
         self.process = subprocess.Popen(
             [required_path("SPRINGBLEND_SERVER"), "--listen", "127.0.0.1:0",
-             "--cache-dir", os.path.join(self.directory, "cache")],
+             "--cache-dir", os.path.join(self.directory, "cache"), *arguments],
             stdout=subprocess.PIPE, stderr=self._log, text=True)
         self.address = self._wait_for_address(startup_seconds)
 

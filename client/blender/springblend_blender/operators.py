@@ -1,11 +1,13 @@
 """The add-on's operators: check the server, upload the active mesh, bake a frame range. Every failure becomes
 a Blender report (the server's message included), never a traceback."""
 
+import contextlib
+import os
 import time
 
 import bpy
 
-from . import connection, scene_data, store
+from . import connection, live, scene_data, store
 from .scene_data import UserError
 
 
@@ -17,6 +19,8 @@ class _Guarded:
             return self.run(context)
         except UserError as error:
             self.report({"ERROR"}, f"springblend: {error}")
+        except OSError as error:
+            self.report({"ERROR"}, f"springblend: {error.filename or 'a file'}: {error.strerror or error}")
         except Exception as error:  # noqa: BLE001 - shown to the artist instead of a traceback
             springblend = _loaded_client()
             if springblend is not None and isinstance(error, springblend.SpringblendError):
@@ -71,8 +75,8 @@ class SPRINGBLEND_OT_upload(_Guarded, bpy.types.Operator):
 
 
 class SPRINGBLEND_OT_bake(_Guarded, bpy.types.Operator):
-    """Solve every frame of the range on the server and store the results as shape keys driven by the
-    timeline (one corrective key per frame)"""
+    """Solve every frame of the range on the server and store the results: a PC2 point cache played by a Mesh
+    Cache modifier, or one corrective shape key per frame"""
     bl_idname = "springblend.bake"
     bl_label = "Bake Frames"
     bl_options = {"REGISTER", "UNDO"}
@@ -89,10 +93,14 @@ class SPRINGBLEND_OT_bake(_Guarded, bpy.types.Operator):
         if last < first:
             raise UserError(f"the frame range {first}..{last} is empty")
         scene_data.shape_keys(obj)
+        to_cache = scene.springblend.bake_mode == "POINT_CACHE"
+        cache_path = _cache_path(scene, obj) if to_cache else None
         springblend = connection.client_module()
         with connection.connect(scene) as client:
             target_names = list(client.get(obj.springblend_character).target_names)
-            store.remove_bake(obj)
+            if not to_cache:
+                store.remove_bake(obj)
+                store.remove_cache(obj)
             frames, request = self._read_frames(scene, obj, target_names, first, last, springblend)
             rest = scene_data.key_positions(obj.data.shape_keys.reference_key)
             targets = [scene_data.key_positions(obj.data.shape_keys.key_blocks[n]) for n in target_names]
@@ -103,18 +111,29 @@ class SPRINGBLEND_OT_bake(_Guarded, bpy.types.Operator):
             window_manager.progress_begin(0, len(frames))
             unconverged = []
             try:
-                for solved in client.solve_frames(obj.springblend_character, **request):
-                    frame = frames[solved.index]
-                    linear = scene_data.linear_blend(rest, targets, request["weights"][solved.index])
-                    store.store_frame(obj, frame, rest, linear, solved.positions)
-                    if not solved.summary.converged:
-                        unconverged.append(f"{frame} ({solved.summary.termination})")
-                    window_manager.progress_update(solved.index + 1)
+                # A point cache is written beside its path and put in place only when every frame is in, so a
+                # failed bake leaves the earlier one playing.
+                with (springblend.pointcache.PointCacheWriter(cache_path, len(rest), start_frame=first)
+                      if to_cache else contextlib.nullcontext()) as cache:
+                    for solved in client.solve_frames(obj.springblend_character, **request):
+                        frame = frames[solved.index]
+                        if to_cache:
+                            cache.add(solved.positions)
+                        else:
+                            linear = scene_data.linear_blend(rest, targets, request["weights"][solved.index])
+                            store.store_frame(obj, frame, rest, linear, solved.positions)
+                        if not solved.summary.converged:
+                            unconverged.append(f"{frame} ({solved.summary.termination})")
+                        window_manager.progress_update(solved.index + 1)
             finally:
                 window_manager.progress_end()
+        if to_cache:
+            store.remove_bake(obj)
+            store.install_cache(obj, _modifier_path(scene, cache_path), first)
         seconds = time.monotonic() - started
+        where = f" into {cache_path}" if to_cache else ""
         self.report({"INFO"}, f"springblend: baked frames {first}..{last} of '{obj.name}' ({len(frames)} frames, "
-                              f"{len(request['colliders'])} colliders) in {seconds:.1f} s")
+                              f"{len(request['colliders'])} colliders){where} in {seconds:.1f} s")
         if unconverged:
             self.report({"WARNING"}, f"springblend: frames not converged: {', '.join(unconverged)}")
         return {"FINISHED"}
@@ -130,7 +149,8 @@ class SPRINGBLEND_OT_bake(_Guarded, bpy.types.Operator):
             for frame in frames:
                 scene.frame_set(frame)
                 if frame == first:
-                    shapes = [_collider_message(springblend, scene_data.collider_geometry(obj, c)) for c in colliders]
+                    shapes = [scene_data.collider_message(springblend, scene_data.collider_geometry(obj, c))
+                              for c in colliders]
                 weights.append(scene_data.frame_weights(obj, target_names))
                 motions.append([scene_data.collider_motion(obj, c) for c in colliders])
         finally:
@@ -139,10 +159,63 @@ class SPRINGBLEND_OT_bake(_Guarded, bpy.types.Operator):
         return frames, request
 
 
-def _collider_message(springblend, geometry):
-    kind, a, b = geometry
-    return {"sphere": springblend.colliders.sphere, "box": springblend.colliders.box,
-            "mesh": springblend.colliders.mesh}[kind](a, b)
+def _cache_path(scene, obj):
+    """The absolute path of the object's point cache, DIRECTORY/OBJECT.pc2, its directory created."""
+    directory = scene.springblend.cache_directory.strip() or "//"
+    if directory.startswith("//") and not bpy.data.filepath:
+        raise UserError("save the .blend first (the point cache goes next to it), or set Cache Directory to an "
+                        "absolute path")
+    directory = bpy.path.abspath(directory)
+    try:
+        os.makedirs(directory, exist_ok=True)
+    except OSError as error:
+        raise UserError(f"cannot create the cache directory {directory}: {error.strerror}") from None
+    return os.path.join(directory, bpy.path.clean_name(obj.name) + ".pc2")
 
 
-CLASSES = [SPRINGBLEND_OT_check_server, SPRINGBLEND_OT_upload, SPRINGBLEND_OT_bake]
+def _modifier_path(scene, path):
+    """The path the modifier reads: relative to the .blend (//...) when the setting is, so the file can move
+    with its .blend."""
+    if scene.springblend.cache_directory.strip().startswith("//") and bpy.data.filepath:
+        return bpy.path.relpath(path)
+    return path
+
+
+class SPRINGBLEND_OT_live_preview(_Guarded, bpy.types.Operator):
+    """Live preview on or off: while on, changing the shape-key values, the frame or a collider shows the
+    physical shape, solved on the server"""
+    bl_idname = "springblend.live_preview"
+    bl_label = "Live Preview"
+
+    @classmethod
+    def poll(cls, context):
+        if live.active() is not None:
+            return True
+        return context.active_object is not None and context.active_object.type == "MESH"
+
+    def run(self, context):
+        if live.active() is not None:
+            live.stop("turned off")
+            return {"FINISHED"}
+        live.start(context)
+        self.report({"INFO"}, f"springblend: live preview of '{context.active_object.name}' on "
+                              f"{context.scene.springblend.server}")
+        return {"FINISHED"}
+
+
+class SPRINGBLEND_OT_live_report(bpy.types.Operator):
+    """Shows a message of the live preview (which runs outside any operator) as a Blender report"""
+    bl_idname = "springblend.live_report"
+    bl_label = "springblend Live Preview Report"
+    bl_options = {"INTERNAL"}
+
+    level: bpy.props.EnumProperty(items=[(v, v, "") for v in ("INFO", "WARNING", "ERROR")], default="INFO")
+    message: bpy.props.StringProperty()
+
+    def execute(self, context):
+        self.report({self.level}, self.message)
+        return {"FINISHED"}
+
+
+CLASSES = [SPRINGBLEND_OT_check_server, SPRINGBLEND_OT_upload, SPRINGBLEND_OT_bake, SPRINGBLEND_OT_live_preview,
+           SPRINGBLEND_OT_live_report]

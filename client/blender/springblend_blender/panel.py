@@ -2,11 +2,11 @@
 
 import bpy
 
-from . import scene_data
+from . import live, scene_data
 
 
 class SPRINGBLEND_PT_main(bpy.types.Panel):
-    """Server, character, colliders and bake."""
+    """Server, character, colliders, live preview and bake."""
     bl_label = "springblend"
     bl_space_type = "VIEW_3D"
     bl_region_type = "UI"
@@ -41,7 +41,21 @@ class SPRINGBLEND_PT_main(bpy.types.Panel):
         sub.prop(settings, "frame_start")
         sub.prop(settings, "frame_end")
         layout.prop(settings, "timeout")
-        layout.operator("springblend.bake", icon="RENDER_ANIMATION")
+
+        box = layout.box()
+        preview = live.active()
+        box.operator("springblend.live_preview", text="Live Preview", icon="PLAY" if preview is None else "PAUSE",
+                     depress=preview is not None)
+        if preview is not None:
+            box.label(text=f"{preview.object_name}: {preview.status()}", icon="LINKED")
+        elif live.last_report():
+            box.label(text=live.last_report(), icon="UNLINKED")
+
+        box = layout.box()
+        box.prop(settings, "bake_mode")
+        if settings.bake_mode == "POINT_CACHE":
+            box.prop(settings, "cache_directory")
+        box.operator("springblend.bake", icon="RENDER_ANIMATION")
 
 
 CLASSES = [SPRINGBLEND_PT_main]

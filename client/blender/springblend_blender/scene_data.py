@@ -6,6 +6,8 @@ import numpy as np
 
 # Shape keys the bake writes (one per frame); never uploaded as targets.
 BAKE_PREFIX = "springblend_frame_"
+# The shape key the live preview writes (solved minus linear); never uploaded as a target.
+LIVE_KEY = "springblend_live"
 
 
 class UserError(Exception):
@@ -30,8 +32,9 @@ def shape_keys(obj):
 
 
 def target_blocks(keys):
-    """The key blocks that are targets: all but the reference (Basis) and earlier bakes."""
-    return [kb for kb in keys.key_blocks if kb != keys.reference_key and not kb.name.startswith(BAKE_PREFIX)]
+    """The key blocks that are targets: all but the reference (Basis), earlier bakes and the live preview."""
+    return [kb for kb in keys.key_blocks
+            if kb != keys.reference_key and not kb.name.startswith(BAKE_PREFIX) and kb.name != LIVE_KEY]
 
 
 def key_positions(key_block):
@@ -127,6 +130,13 @@ def collider_geometry(character, obj):
     if np.any(half <= 0):
         raise UserError(f"collider '{obj.name}' is flat (a box needs a positive size on every axis)")
     return ("box", center, half)
+
+
+def collider_message(springblend, geometry):
+    """The springblend client's Collider message of what collider_geometry returned."""
+    kind, a, b = geometry
+    return {"sphere": springblend.colliders.sphere, "box": springblend.colliders.box,
+            "mesh": springblend.colliders.mesh}[kind](a, b)
 
 
 def collider_motion(character, obj):

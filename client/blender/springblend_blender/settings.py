@@ -35,6 +35,14 @@ class SpringblendSceneSettings(bpy.types.PropertyGroup):
         name="Scene range", default=True, description="Bake the scene's frame range")
     frame_start: bpy.props.IntProperty(name="Start", default=1, description="First frame to bake")
     frame_end: bpy.props.IntProperty(name="End", default=24, description="Last frame to bake")
+    bake_mode: bpy.props.EnumProperty(
+        name="Bake to", default="POINT_CACHE",
+        items=[("POINT_CACHE", "Point Cache", "One PC2 file of every frame, played by a Mesh Cache modifier"),
+               ("SHAPE_KEYS", "Shape Keys", "One corrective shape key per frame, keyed on its frame")],
+        description="Where a bake goes; either kind replaces an earlier bake of both kinds")
+    cache_directory: bpy.props.StringProperty(
+        name="Cache Directory", default="//", subtype="DIR_PATH",
+        description="Where point-cache bakes are written, as OBJECT.pc2 (// is the .blend's directory)")
 
     def frame_range(self, scene):
         """(first, last) frame of a bake."""
