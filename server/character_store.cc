@@ -306,6 +306,10 @@ std::optional<std::string> CharacterStore::ReadFile(const std::string& id) {
 }
 
 std::shared_ptr<const CharacterStore::Entry> CharacterStore::Build(const std::string& id, const CharacterData& data) {
+  {
+    std::lock_guard lock(mutex_);
+    ++stats_.builds;
+  }
   TriangleMesh rest;
   rest.name = "rest";
   rest.source = data.name.empty() ? "rest mesh" : data.name + ": rest mesh";

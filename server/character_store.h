@@ -40,6 +40,7 @@ struct StoreOptions {
 struct StoreStats {
   std::int64_t hits = 0, misses = 0, evictions = 0, bytes = 0, characters = 0, rebuilds_from_disk = 0,
                corrupt_files = 0;
+  std::int64_t builds = 0;  // rigs built (uploads and rebuilds, failed ones too): concurrent requests share one
 };
 
 class CharacterStore {

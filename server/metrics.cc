@@ -53,6 +53,8 @@ void Metrics::CountFrame(double solve_seconds, int newton_iterations, bool conve
   solve_seconds_.Observe(solve_seconds);
 }
 
+void Metrics::CountColliders(size_t converted) { colliders_.fetch_add(converted, std::memory_order_relaxed); }
+
 std::string Metrics::Render(const std::function<std::string()>& extra) const {
   std::string out = fmt::format(
       "# HELP springblend_build_info The running springblend version.\n# TYPE springblend_build_info gauge\n"
@@ -72,8 +74,10 @@ std::string Metrics::Render(const std::function<std::string()>& extra) const {
       "# HELP springblend_frames_unconverged_total Frames that ended without converging.\n"
       "# TYPE springblend_frames_unconverged_total counter\nspringblend_frames_unconverged_total {}\n"
       "# HELP springblend_newton_iterations_total Newton iterations over all frames.\n"
-      "# TYPE springblend_newton_iterations_total counter\nspringblend_newton_iterations_total {}\n",
-      frames_.load(), unconverged_frames_.load(), newton_iterations_.load());
+      "# TYPE springblend_newton_iterations_total counter\nspringblend_newton_iterations_total {}\n"
+      "# HELP springblend_colliders_converted_total Colliders converted for Solve requests and Interactive sessions.\n"
+      "# TYPE springblend_colliders_converted_total counter\nspringblend_colliders_converted_total {}\n",
+      frames_.load(), unconverged_frames_.load(), newton_iterations_.load(), colliders_.load());
   out += solve_seconds_.Render("springblend_solve_seconds", "Time to solve one frame.");
   if (extra) out += extra();
   return out;

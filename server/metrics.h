@@ -35,6 +35,9 @@ class Metrics {
   // method: Solve, Interactive, UploadCharacter, ...; code: the gRPC status name (OK, NOT_FOUND, ...).
   void CountRequest(const std::string& method, const std::string& code);
   void CountFrame(double solve_seconds, int newton_iterations, bool converged);
+  // Colliders turned into solver obstacles (a mesh collider: parsed or copied, checked, its AABB tree built).
+  // A stream converts its colliders once, not per frame.
+  void CountColliders(size_t converted);
 
   // Everything, in the exposition format; `extra` appends gauges read at scrape time.
   std::string Render(const std::function<std::string()>& extra) const;
@@ -42,7 +45,7 @@ class Metrics {
  private:
   mutable std::mutex mutex_;
   std::map<std::pair<std::string, std::string>, std::uint64_t> requests_;
-  std::atomic<std::uint64_t> frames_{0}, unconverged_frames_{0}, newton_iterations_{0};
+  std::atomic<std::uint64_t> frames_{0}, unconverged_frames_{0}, newton_iterations_{0}, colliders_{0};
   Histogram solve_seconds_;
 };
 

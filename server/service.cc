@@ -218,6 +218,7 @@ class SolveReactor final : public grpc::ServerWriteReactor<grpc::ByteBuffer> {
       memory_.Grow(StreamBytes(request_.colliders(), *entry_->rig));
       job_ = ToSolveJob(request_, *entry_->rig, context_.limits, [this] { return call_->IsCancelled() || Expired(); });
       colliders_ = std::move(job_.colliders);
+      context_.metrics.CountColliders(colliders_.size());
       in_flight_limit_ = std::max<size_t>(1, std::min<size_t>(context_.pool.threads(), job_.frames.size()));
     } catch (const StatusError& e) {
       std::unique_lock lock(mutex_);
@@ -550,6 +551,7 @@ class InteractiveReactor final : public grpc::ServerBidiReactor<grpc::ByteBuffer
       std::vector<Collider> colliders =
           ToColliders(start_.colliders(), context_.limits, [this] { return call_->IsCancelled(); });
       colliders_ = colliders.size();
+      context_.metrics.CountColliders(colliders.size());
       solver_ = std::make_unique<Solver>(entry_->rig, job_.options);
       solver_->SetColliders(std::move(colliders));
       start_.clear_colliders();  // converted once; the text is not needed again
