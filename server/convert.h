@@ -27,6 +27,12 @@ struct Limits {
   // A mesh collider's OBJ text (checked in a linear pass before OpenMesh) and the mesh (before CGAL).
   MeshTextLimits collider_text{100'000, 200'000, 256, 256};
   MeshColliderLimits collider{100'000, 200'000, 256};
+
+  // --max-collider-faces: one cap on a mesh collider's triangles and vertices, as OBJ text and as arrays.
+  void SetMaxColliderFaces(int faces) {
+    collider.max_faces = collider.max_vertices = faces;
+    collider_text.max_faces = collider_text.max_vertices = faces;
+  }
 };
 
 // Collects an upload's chunks, checking each against the header and the limits as it arrives. Memory grows as

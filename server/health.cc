@@ -8,6 +8,7 @@
 #include <string>
 #include <vector>
 
+#include "server.h"
 #include "springblend/error.h"
 
 namespace springblend::server {
@@ -24,13 +25,7 @@ class WithoutPlugins final : public grpc::ServerBuilderOption {
 }  // namespace
 
 HealthEndpoint::HealthEndpoint(const std::string& listen) {
-  // gRPC takes a port past 65535 without complaint, so the port is checked here.
-  const size_t colon = listen.rfind(':');
-  const std::string port = colon == std::string::npos ? "" : listen.substr(colon + 1);
-  if (colon == 0 || port.empty() || port.size() > 5 ||
-      port.find_first_not_of("0123456789") != std::string::npos || std::stoi(port) > 65535) {
-    throw Error(ErrorCode::kInvalidInput, "--health-address " + listen + ": expected HOST:PORT (port 0 to 65535)");
-  }
+  CheckListenAddress(listen, "--health-address");
   // The default health service (SERVING for "" until told otherwise) is what a server gets with no service of
   // its own that implements health.
   grpc::EnableDefaultHealthCheckService(true);
