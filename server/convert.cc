@@ -19,6 +19,57 @@ Eigen::Vector3d ToVector(const v1::Vec3& v) { return {v.x(), v.y(), v.z()}; }
 
 [[noreturn]] void Invalid(const std::string& what) { throw Error(ErrorCode::kInvalidInput, what); }
 
+// A mesh collider's arrays as a mesh, checked element by element so a refusal names the array and the index
+// (`mesh.triangles[5]`; the caller prefixes the collider). Counts are checked against the limits from the byte
+// sizes, before anything is allocated. Collider::Mesh then checks that it is closed and has volume.
+TriangleMesh MeshFromArrays(const v1::MeshArrays& arrays, int collider, const MeshColliderLimits& limits) {
+  const std::string& positions = arrays.positions();
+  const std::string& triangles = arrays.triangles();
+  if (positions.size() % 24 != 0) {
+    Invalid(fmt::format("mesh.positions has {} bytes, not a multiple of 24 (float64 x y z per vertex)", positions.size()));
+  }
+  if (triangles.size() % 12 != 0) {
+    Invalid(fmt::format("mesh.triangles has {} bytes, not a multiple of 12 (int32 a b c per triangle)", triangles.size()));
+  }
+  const size_t n = positions.size() / 24, m = triangles.size() / 12;
+  const auto over = [&](const char* array, size_t count, int limit, const char* what) {
+    if (limit > 0 && count > static_cast<size_t>(limit)) {
+      throw LimitError(fmt::format("colliders[{}].mesh.{} has {} {}, over the limit of {} (--max-collider-faces)",
+                                   collider, array, count, what, limit));
+    }
+  };
+  over("positions", n, limits.max_vertices, "vertices");
+  over("triangles", m, limits.max_faces, "triangles");
+  if (n < 4 || m < 4) {
+    Invalid(fmt::format("mesh has {} vertices and {} triangles: a closed mesh needs at least 4 of each", n, m));
+  }
+  TriangleMesh mesh;
+  mesh.name = mesh.source = "mesh";
+  // Row-major Eigen storage matches the wire's packed triples (both little-endian on our targets).
+  mesh.vertices.resize(static_cast<Eigen::Index>(n), 3);
+  std::memcpy(mesh.vertices.data(), positions.data(), positions.size());
+  mesh.faces.resize(static_cast<Eigen::Index>(m), 3);
+  std::memcpy(mesh.faces.data(), triangles.data(), triangles.size());
+  for (Eigen::Index v = 0; v < mesh.vertices.rows(); ++v) {
+    for (int c = 0; c < 3; ++c) {
+      if (!std::isfinite(mesh.vertices(v, c))) {
+        Invalid(fmt::format("mesh.positions: vertex {} has a non-finite {} coordinate ({})", v, "xyz"[c],
+                            mesh.vertices(v, c)));
+      }
+    }
+  }
+  for (Eigen::Index f = 0; f < mesh.faces.rows(); ++f) {
+    for (int c = 0; c < 3; ++c) {
+      const int v = mesh.faces(f, c);
+      if (v < 0 || static_cast<size_t>(v) >= n) {
+        Invalid(fmt::format("mesh.triangles[{}] refers to vertex {}, but mesh.positions has {} vertices", f, v, n));
+      }
+      if (v == mesh.faces(f, (c + 1) % 3)) Invalid(fmt::format("mesh.triangles[{}] repeats vertex {}", f, v));
+    }
+  }
+  return mesh;
+}
+
 }  // namespace
 
 void UploadAssembler::Fail(const std::string& what, bool limit) {
@@ -227,7 +278,7 @@ void ToOptions(const v1::SolveOptions& o, SolveJob* job) {
 std::vector<Collider> ToColliders(const google::protobuf::RepeatedPtrField<v1::Collider>& colliders,
                                   const Limits& limits, const std::function<bool()>& stopped) {
   if (colliders.size() > limits.max_colliders) {
-    Invalid(fmt::format("{} colliders is over the limit of {}", colliders.size(), limits.max_colliders));
+    throw LimitError(fmt::format("{} colliders is over the limit of {}", colliders.size(), limits.max_colliders));
   }
   std::vector<Collider> out;
   for (int i = 0; i < colliders.size(); ++i) {
@@ -253,6 +304,9 @@ std::vector<Collider> ToColliders(const google::protobuf::RepeatedPtrField<v1::C
           out.push_back(Collider::Mesh(mesh, limits.collider));
           break;
         }
+        case v1::Collider::kMesh:
+          out.push_back(Collider::Mesh(MeshFromArrays(c.mesh(), i, limits.collider), limits.collider));
+          break;
         case v1::Collider::SHAPE_NOT_SET:
           Invalid("no shape set");
       }
@@ -316,9 +370,13 @@ void CheckSolved(const Points& positions, size_t index) {
 
 std::int64_t StreamBytes(const google::protobuf::RepeatedPtrField<v1::Collider>& colliders, const Rig& rig) {
   // A mesh collider holds its text's worth of vertices and faces several times over (our arrays, CGAL's
-  // half-edge mesh, the AABB tree and its distance-query tree): about 16 bytes kept per byte of OBJ text.
+  // half-edge mesh, the AABB tree and its distance-query tree): about 16 bytes kept per byte of OBJ text, and
+  // at most as much per byte of its arrays (a vertex is 24 bytes there, about as many as an OBJ line).
   std::int64_t bytes = 64 << 10;
-  for (const auto& c : colliders) bytes += 16 * static_cast<std::int64_t>(c.mesh_obj().size());
+  for (const auto& c : colliders) {
+    bytes += 16 * static_cast<std::int64_t>(c.mesh_obj().size() + c.mesh().positions().size() +
+                                            c.mesh().triangles().size());
+  }
   // The solver's state: positions, forces, the factorization (several copies of a #V x 3 array, and more).
   return bytes + 512LL * rig.num_vertices();
 }

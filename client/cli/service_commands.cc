@@ -64,16 +64,9 @@ v1::Collider ToProto(const std::string& spec) {
     *out.mutable_plane()->mutable_point() = ToVec3(v[0], v[1], v[2]);
     *out.mutable_plane()->mutable_normal() = ToVec3(v[3], v[4], v[5]);
   } else {
-    // Any format the loader reads travels as OBJ text.
+    // Any format the loader reads travels as arrays.
     const TriangleMesh mesh = LoadMesh(c.path);
-    std::ostringstream obj;
-    for (Eigen::Index i = 0; i < mesh.vertices.rows(); ++i) {
-      obj << fmt::format("v {} {} {}\n", mesh.vertices(i, 0), mesh.vertices(i, 1), mesh.vertices(i, 2));
-    }
-    for (Eigen::Index f = 0; f < mesh.faces.rows(); ++f) {
-      obj << fmt::format("f {} {} {}\n", mesh.faces(f, 0) + 1, mesh.faces(f, 1) + 1, mesh.faces(f, 2) + 1);
-    }
-    out.set_mesh_obj(obj.str());
+    out = MeshCollider(mesh.vertices, mesh.faces);
   }
   return out;
 }

@@ -51,6 +51,24 @@ Client::Client(ClientOptions options) : options_(std::move(options)) {
   solves_ = v1::SolveService::NewStub(channel_);
 }
 
+Client::Client(std::shared_ptr<grpc::Channel> channel, ClientOptions options)
+    : options_(std::move(options)), channel_(std::move(channel)) {
+  characters_ = v1::CharacterService::NewStub(channel_);
+  solves_ = v1::SolveService::NewStub(channel_);
+}
+
+v1::Collider MeshCollider(const Points& vertices, const Faces& triangles) {
+  if (vertices.rows() == 0 || triangles.rows() == 0) {
+    throw ClientError(grpc::StatusCode::INVALID_ARGUMENT, "a mesh collider needs vertices and triangles");
+  }
+  v1::Collider collider;
+  v1::MeshArrays* mesh = collider.mutable_mesh();
+  // Row-major Eigen storage is the wire's packed triples (little-endian on our targets).
+  mesh->set_positions(reinterpret_cast<const char*>(vertices.data()), sizeof(double) * static_cast<size_t>(vertices.size()));
+  mesh->set_triangles(reinterpret_cast<const char*>(triangles.data()), sizeof(int) * static_cast<size_t>(triangles.size()));
+  return collider;
+}
+
 std::unique_ptr<grpc::ClientContext> Client::Context(const std::string& character) const {
   auto context = std::make_unique<grpc::ClientContext>();
   context->set_deadline(std::chrono::system_clock::now() + options_.timeout);

@@ -45,7 +45,12 @@ class ArraysTest(unittest.TestCase):
     def test_collider_builders(self):
         self.assertEqual(colliders.sphere((1, 2, 3), 0.5).sphere.radius, 0.5)
         self.assertEqual(colliders.box((0, 0, 0), (1, 2, 3)).box.half_extents.y, 2.0)
-        self.assertIn("f 1 2 3", colliders.mesh([[0, 0, 0], [1, 0, 0], [0, 1, 0]], [[0, 1, 2]]).mesh_obj)
+        triangle = [[0, 0, 0], [1, 0, 0], [0, 1, 0.5]], [[0, 1, 2]]
+        self.assertIn("f 1 2 3", colliders.mesh(*triangle, as_obj_text=True).mesh_obj)
+        arrays = colliders.mesh(*triangle).mesh
+        np.testing.assert_array_equal(np.frombuffer(arrays.positions, "<f8").reshape(-1, 3), triangle[0])
+        np.testing.assert_array_equal(np.frombuffer(arrays.triangles, "<i4").reshape(-1, 3), triangle[1])
+        self.assertRefused(lambda: colliders.mesh(triangle[0], [[0, 1, 3]]), "faces refer to vertices")
         self.assertRefused(lambda: colliders.sphere((1, 2), 0.5), "sphere center")
 
 

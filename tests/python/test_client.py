@@ -10,7 +10,7 @@ import grpc
 import numpy as np
 
 import springblend
-from springblend.colliders import box, sphere
+from springblend.colliders import box, mesh, sphere
 import springblend_testing as testing
 
 # Frames of the two cylinder targets with a ball in the way (the quickstart's obstacle), solved by both the
@@ -91,6 +91,20 @@ class ClientTest(unittest.TestCase):
             self.assertEqual((cache.start_frame, cache.sample_rate), (1.0, 1.0))
             self.assertEqual(cache.positions.shape, (len(weights), len(self.rest), 3))
             self.assertLessEqual(np.abs(cache.positions - solution.positions).max(), 1e-6 * self.diagonal)
+
+    def test_mesh_collider_as_arrays_gives_the_frames_of_obj_text(self):
+        # A closed box in the cylinder's way, corners exact in float32 (the text is read as float32).
+        corners = np.array([[x, y, z] for x in (-2.0, -1.5) for y in (0.5, 1.0) for z in (0.5, 1.0)])
+        quads = [(0, 1, 3, 2), (4, 6, 7, 5), (0, 4, 5, 1), (2, 3, 7, 6), (0, 2, 6, 4), (1, 5, 7, 3)]
+        triangles = [t for a, b, c, d in quads for t in ((a, b, c), (a, c, d))]
+        by_arrays = self.client.solve(self.character.id, WEIGHTS, colliders=[mesh(corners, triangles)])
+        by_text = self.client.solve(self.character.id, WEIGHTS, colliders=[mesh(corners, triangles, as_obj_text=True)])
+        np.testing.assert_array_equal(by_arrays.positions, by_text.positions)
+        self.assertGreater(sum(s.contacts for s in by_arrays.summaries), 0, "the box should touch the cylinder")
+        with self.assertRaises(springblend.SpringblendError) as caught:
+            self.client.solve(self.character.id, WEIGHTS, colliders=[mesh(corners, triangles[:-1])])
+        self.assertEqual(caught.exception.code, grpc.StatusCode.INVALID_ARGUMENT)
+        self.assertIn("colliders[0]", caught.exception.message)
 
     def test_solve_streams_frames_with_moving_colliders_and_pins(self):
         translations = [[(0.0, 0.0, 0.0), (1.0, 0.0, 0.0, 0.0)], [(0.1, 0.0, 0.0), (1.0, 0.0, 0.0, 0.0)]]

@@ -45,6 +45,10 @@ struct ClientOptions {
   }
 };
 
+// A mesh collider from arrays (#V by 3 positions, #F by 3 0-based triangles; closed, outward-oriented), sent as
+// packed arrays: nothing to format or parse. Throws ClientError(INVALID_ARGUMENT) on an empty mesh.
+v1::Collider MeshCollider(const Points& vertices, const Faces& triangles);
+
 // The metadata header that names the character of a call, so a load balancer can route by it.
 inline constexpr char kCharacterHeader[] = "x-springblend-character";
 
@@ -65,7 +69,11 @@ class InteractiveSession {
 
 class Client {
  public:
+  // Connects to options.address, with its TLS settings.
   explicit Client(ClientOptions options);
+  // Over a channel the caller made (an in-process channel into a server in this process, or one with
+  // settings of its own); options.address and the tls_* fields are then unused, timeout and token apply.
+  explicit Client(std::shared_ptr<grpc::Channel> channel, ClientOptions options = {});
 
   // Uploads the rest mesh and targets (same vertex count and faces) in pieces.
   v1::Character Upload(const TriangleMesh& rest, const std::vector<TriangleMesh>& targets,

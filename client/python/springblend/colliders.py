@@ -37,15 +37,26 @@ def plane(point, normal):
     return pb.Collider(plane=pb.Plane(point=vec3(point, "plane point"), normal=vec3(normal, "plane normal")))
 
 
-def mesh(vertices, faces):
-    """A closed triangle mesh collider (#V by 3 positions, #F by 3 0-based triangles), sent as OBJ text."""
+def mesh(vertices, faces, as_obj_text=False):
+    """A closed, outward-oriented triangle mesh collider: #V by 3 positions, #F by 3 0-based triangles.
+
+    Sent as packed arrays (float64 positions, int32 triangles), which the server reads without parsing;
+    as_obj_text=True sends OBJ text instead, for servers older than the arrays (the text's coordinates are read
+    as float32)."""
     vertices = np.asarray(vertices, dtype=np.float64)
-    faces = np.asarray(faces, dtype=np.int64)
+    faces = np.asarray(faces)
     if vertices.ndim != 2 or vertices.shape[1] != 3 or faces.ndim != 2 or faces.shape[1] != 3:
         raise invalid_argument("mesh collider: expected #V by 3 vertices and #F by 3 faces")
-    lines = [f"v {x!r} {y!r} {z!r}" for x, y, z in vertices.tolist()]
-    lines += [f"f {a + 1} {b + 1} {c + 1}" for a, b, c in faces.tolist()]
-    return pb.Collider(mesh_obj="\n".join(lines) + "\n")
+    if not np.issubdtype(faces.dtype, np.integer):
+        raise invalid_argument("mesh collider: faces must be integer vertex indices")
+    if faces.size and (faces.min() < 0 or faces.max() >= len(vertices)):
+        raise invalid_argument(f"mesh collider: faces refer to vertices outside 0..{len(vertices) - 1}")
+    if as_obj_text:
+        lines = [f"v {x!r} {y!r} {z!r}" for x, y, z in vertices.tolist()]
+        lines += [f"f {a + 1} {b + 1} {c + 1}" for a, b, c in faces.tolist()]
+        return pb.Collider(mesh_obj="\n".join(lines) + "\n")
+    return pb.Collider(mesh=pb.MeshArrays(positions=vertices.astype("<f8").tobytes(),
+                                          triangles=faces.astype("<i4").tobytes()))
 
 
 def transform(translation=(0.0, 0.0, 0.0), rotation=(1.0, 0.0, 0.0, 0.0)):
