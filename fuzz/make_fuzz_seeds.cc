@@ -77,6 +77,11 @@ void WriteRequests(const std::string& dir, const std::string& tet_obj) {
   *c->mutable_plane()->mutable_point() = Vec(0, -1, 0);
   *c->mutable_plane()->mutable_normal() = Vec(0, 1, 0);
   full.add_colliders()->set_mesh_obj(tet_obj);
+  // The same tetrahedron as arrays (Collider.mesh): float64 positions, int32 triangles.
+  const TriangleMesh tet = LoadMeshFromText(tet_obj, "obj", "tetrahedron");
+  v1::MeshArrays* arrays = full.add_colliders()->mutable_mesh();
+  arrays->set_positions(reinterpret_cast<const char*>(tet.vertices.data()), sizeof(double) * tet.vertices.size());
+  arrays->set_triangles(reinterpret_cast<const char*>(tet.faces.data()), sizeof(int) * tet.faces.size());
   for (auto& f : *full.mutable_frames()) {
     for (int k = 0; k < full.colliders_size(); ++k) {
       v1::Transform* t = f.add_collider_transforms();
