@@ -196,6 +196,7 @@ struct Pass {
   std::vector<SolveSummary> summaries;
   double accuracy = 0.0;  // max over the pass's frames of the max vertex distance to the reference / diagonal
   bool has_accuracy = false;
+  double start_error = 0.0;  // alone: max over frames of the start's (Solver::Start) distance to the reference
 
   // Figures over the sweep's frames 1..N-1 (frame 0, the rest shape, only starts a sweep).
   std::vector<double> StepMs() const {
@@ -238,6 +239,11 @@ struct MethodResult {
       if (*pass && (*pass)->has_accuracy) worst = std::max(worst.value_or(0.0), (*pass)->accuracy);
     }
     return worst;
+  }
+  // The worst frame's start (the rig's prediction) against the reference, from the alone pass.
+  std::optional<double> start_error() const {
+    if (alone && alone->has_accuracy) return alone->start_error;
+    return std::nullopt;
   }
   bool ok() const { return (!alone || alone->all_converged()) && (!sweep || sweep->all_converged()); }
 };
@@ -333,6 +339,11 @@ Pass AlonePass(const std::shared_ptr<const Rig>& rig, const SolveOptions& option
     if (reference != nullptr) {
       pass.accuracy = std::max(pass.accuracy, Distance(frame_positions, (*reference)[i], diagonal));
       pass.has_accuracy = true;
+      const Points start_positions = solver.Start(frames[i].weights).topRows(rig->num_surface_vertices());
+      const double start_error = Distance(start_positions, (*reference)[i], diagonal);
+      pass.start_error = std::max(pass.start_error, start_error);
+      std::cerr << fmt::format("  {} frame {}: start {:.2e} from the reference, answer {:.2e}\n", what, i,
+                               start_error, Distance(frame_positions, (*reference)[i], diagonal));
     }
     std::cerr << LogLine(what, static_cast<int>(i), static_cast<int>(frames.size()), pass.ms.back(), summary);
   }
@@ -590,7 +601,7 @@ std::string RowLine(const RowResult& r) {
 const std::vector<std::string> kMethodColumns = {
     "row", "method", "alone ms median", "alone p95", "alone max", "sweep ms/step", "speed-up", "Newton it",
     "CG it", "L-BFGS it", "fallbacks", "factorizations", "spring ms", "solve ms", "search ms", "factor ms",
-    "accuracy", "terminations"};
+    "accuracy", "start error", "terminations"};
 
 std::string MethodLine(const RowResult& r, const MethodResult& m) {
   const auto f1 = [](double v) { return fmt::format("{:.1f}", v); };
@@ -631,6 +642,7 @@ std::string MethodLine(const RowResult& r, const MethodResult& m) {
       Cell(mean([](const SolveSummary& s) { return s.line_search_ms; }), f1),
       Cell(mean([](const SolveSummary& s) { return s.factorize_ms; }), f1),
       Cell(m.accuracy(), [](double a) { return fmt::format("{:.1e}", a); }),
+      Cell(m.start_error(), [](double a) { return fmt::format("{:.1e}", a); }),
       TerminationCell(m),
   };
   return fmt::format("| {} |", fmt::join(cells, " | "));
@@ -663,7 +675,8 @@ std::string MarkdownReport(const Machine& machine, const Settings& settings, con
       "Speed-up: direct-newton (a fresh factorization and a direct solve per Newton iteration) alone median "
       "over the method's alone median. Accuracy: max over frames (alone and sweep) of the max vertex distance "
       "to a reference of the same frames (direct Newton, residual and step tolerance 1e-12){}, over the "
-      "bounding-box diagonal.{}\n\n",
+      "bounding-box diagonal. Start error: the same for the frames' starts (Solver::Start: the linear blend plus "
+      "the target paths' corrections), before any iteration: how close the prediction alone is.{}\n\n",
       settings.steps, settings.steps - 1, settings.quick ? " (skipped: --quick)" : "",
       settings.profile ? " --profile: only the first method's sweep." : "");
   md += Header(kMethodColumns);
@@ -766,6 +779,7 @@ json RowJson(const RowResult& r) {
                        {"alone", OrNull(m.alone, PassJson)},
                        {"sweep", OrNull(m.sweep, PassJson)},
                        {"accuracy", OrNull(m.accuracy(), identity)},
+                       {"start_error", OrNull(m.start_error(), identity)},
                        {"speedup_over_baseline", speedup}});
   }
   return {{"name", r.name},
