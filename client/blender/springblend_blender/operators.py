@@ -93,6 +93,8 @@ class SPRINGBLEND_OT_bake(_Guarded, bpy.types.Operator):
         if last < first:
             raise UserError(f"the frame range {first}..{last} is empty")
         scene_data.shape_keys(obj)
+        if live.active() is not None:
+            live.stop("a bake started")  # the bake replaces what the preview hid
         to_cache = scene.springblend.bake_mode == "POINT_CACHE"
         cache_path = _cache_path(scene, obj) if to_cache else None
         springblend = connection.client_module()
