@@ -133,7 +133,7 @@ std::uint64_t RandomSuffix() {
 }
 
 std::int64_t EstimateBytes(const Rig& rig) {
-  const std::int64_t n = rig.num_vertices(), m = rig.num_springs(), shapes = rig.num_targets() + 1;
+  const std::int64_t n = rig.num_vertices(), m = rig.num_springs(), shapes = rig.num_shapes() + 1;
   return 24 * n * shapes * 2 + m * (9 + 8 * shapes) + rig.summary().hessian_nonzeros * 16 +
          rig.summary().faces * 12LL * shapes;
 }

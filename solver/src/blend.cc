@@ -95,7 +95,7 @@ void ValidateWeights(const Rig& rig, const std::vector<double>& weights) {
   for (size_t t = 0; t < weights.size(); ++t) {
     if (!std::isfinite(weights[t])) {
       throw Error(ErrorCode::kInvalidInput,
-                  fmt::format("weights[{}] (target '{}') is not finite ({})", t, rig.target(static_cast<int>(t)).name,
+                  fmt::format("weights[{}] (target '{}') is not finite ({})", t, rig.target_names()[t],
                               weights[t]));
     }
   }
@@ -130,40 +130,45 @@ void ValidateFrame(const Rig& rig, const Frame& frame, size_t colliders) {
 
 Points LinearBlend(const Rig& rig, const std::vector<double>& weights) {
   ValidateWeights(rig, weights);
+  const std::vector<double> shape_weights = rig.ShapeWeights(weights);
   const Points& rest = rig.rest().vertices;
   Points out = rest;
-  for (int t = 0; t < rig.num_targets(); ++t) {
-    if (weights[t] != 0.0) out += weights[t] * (rig.target(t).vertices - rest);
+  for (int s = 0; s < rig.num_shapes(); ++s) {
+    if (shape_weights[s] != 0.0) out += shape_weights[s] * (rig.target(s).vertices - rest);
   }
   return out;
 }
 
 Points LinearBlendAll(const Rig& rig, const std::vector<double>& weights) {
   ValidateWeights(rig, weights);
-  const Points& rest = rig.shape(0);
-  Points out = rest;
-  for (int t = 0; t < rig.num_targets(); ++t) {
-    if (weights[t] != 0.0) out += weights[t] * (rig.shape(t + 1) - rest);
-  }
-  return out;
+  return internal::LinearBlendShapes(rig, rig.ShapeWeights(weights));
 }
 
 void BlendRestLengths(const Rig& rig, const std::vector<double>& weights, std::vector<double>* blended) {
   ValidateWeights(rig, weights);
-  internal::BlendRestLengths(rig, weights, blended);
+  internal::BlendRestLengths(rig, rig.ShapeWeights(weights), blended);
 }
 
 namespace internal {
 
-void BlendRestLengths(const Rig& rig, const std::vector<double>& weights, std::vector<double>* blended) {
+Points LinearBlendShapes(const Rig& rig, const std::vector<double>& shape_weights) {
+  const Points& rest = rig.shape(0);
+  Points out = rest;
+  for (int s = 0; s < rig.num_shapes(); ++s) {
+    if (shape_weights[s] != 0.0) out += shape_weights[s] * (rig.shape(s + 1) - rest);
+  }
+  return out;
+}
+
+void BlendRestLengths(const Rig& rig, const std::vector<double>& shape_weights, std::vector<double>* blended) {
   const std::vector<double>& r0 = rig.rest_lengths();
   const int m = rig.num_springs();
   blended->assign(r0.begin(), r0.end());
   double* out = blended->data();
-  for (int t = 0; t < rig.num_targets(); ++t) {
-    const double w = weights[t];
-    if (w == 0.0 || !rig.target_changes_lengths(t)) continue;
-    const double* d = rig.rest_length_delta(t).data();
+  for (int s = 0; s < rig.num_shapes(); ++s) {
+    const double w = shape_weights[s];
+    if (w == 0.0 || !rig.target_changes_lengths(s)) continue;
+    const double* d = rig.rest_length_delta(s).data();
     for (int q = 0; q < m; ++q) out[q] += w * d[q];
   }
   const double floor = rig.options().min_rest_length_fraction * rig.summary().mean_rest_length;

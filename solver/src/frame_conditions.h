@@ -20,7 +20,8 @@ struct FrameConditions {
   double diagonal_shift = 0.0;                        // removes the free rotation of a partly held rig
 };
 
-// `linear`: the linear blend of every simulated vertex for `weights`; `pins`: vertex and position.
+// `weights`: one per sculpted shape (Rig::ShapeWeights); `linear`: the linear blend of every simulated vertex
+// for them; `pins`: vertex and position.
 FrameConditions ConditionsOf(const Rig& rig, const std::vector<double>& weights, const Points& linear,
                              const std::vector<std::pair<int, Eigen::Vector3d>>& pins);
 

@@ -43,7 +43,7 @@ Points PlaceTarget(const Rig& rig, int pinned, const Points& anchor_rest, const 
   internal::SpringSystem springs(internal::TopologyOf(rig));
   springs.set_length_scale(rig.summary().mean_rest_length);
   std::vector<double> rest_lengths;
-  internal::BlendRestLengths(rig, std::vector<double>(rig.num_targets(), 0.0), &rest_lengths);
+  internal::BlendRestLengths(rig, std::vector<double>(rig.num_shapes(), 0.0), &rest_lengths);
   springs.SetRestLengths(std::move(rest_lengths), rig.spring_kind(), internal::KindStiffness(rig.options()),
                          internal::StiffnessFloor(rig));
   internal::LinearSystem linear(rig.internals().pattern->matrix, *rig.internals().cholesky,

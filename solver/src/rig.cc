@@ -88,12 +88,6 @@ void RigOptions::Validate() const {
 Rig::Rig() : internals_(std::make_unique<Internals>()) {}
 Rig::~Rig() = default;
 
-std::vector<std::string> Rig::target_names() const {
-  std::vector<std::string> names;
-  names.reserve(targets_.size());
-  for (const auto& t : targets_) names.push_back(t.name);
-  return names;
-}
 
 namespace {
 
@@ -103,16 +97,18 @@ double Elapsed(std::chrono::steady_clock::time_point since) {
 
 }  // namespace
 
-std::shared_ptr<const Rig> RigBuilder::Build(TriangleMesh rest, std::vector<TriangleMesh> targets,
+std::shared_ptr<const Rig> RigBuilder::Build(TriangleMesh rest, std::vector<TargetSpec> targets,
                                              const RigOptions& options) {
   const auto start = std::chrono::steady_clock::now();
   options.Validate();
-  CheckTargets(rest, targets);
+  ValidateMesh(rest);
 
   std::shared_ptr<Rig> rig(new Rig());
   rig->options_ = options;
   rig->rest_ = std::move(rest);
-  rig->targets_ = std::move(targets);
+  RigBuilder builder(rig);
+  builder.ExpandSpecs(std::move(targets));
+  CheckTargets(rig->rest_, rig->targets_);
   RigSummary& s = rig->summary_;
   s.surface_vertices = static_cast<int>(rig->rest_.vertices.rows());
   s.faces = static_cast<int>(rig->rest_.faces.rows());
@@ -123,7 +119,6 @@ std::shared_ptr<const Rig> RigBuilder::Build(TriangleMesh rest, std::vector<Tria
     throw Error(ErrorCode::kInvalidInput, rig->rest_.source + ": all vertices coincide");
   }
 
-  RigBuilder builder(rig);
   builder.BuildSurfaceSprings();
   builder.BuildInterior();
   if (options.interior && options.shell && builder.interior_.path == internal::Interior::Path::kSurfaceOnly) {
@@ -151,6 +146,7 @@ std::shared_ptr<const Rig> RigBuilder::Build(TriangleMesh rest, std::vector<Tria
     builder.PlaceInterior();
   }
   builder.ComputeRestLengths();
+  builder.ApplyMasks();
   if (options.target_paths) {
     internal::TargetPathsReport report;
     internals.paths = internal::BuildTargetPaths(*rig, options.path_intervals, options.path_extension, &report);
@@ -174,6 +170,16 @@ std::shared_ptr<const Rig> RigBuilder::Build(TriangleMesh rest, std::vector<Tria
 }
 
 std::shared_ptr<const Rig> Rig::Build(TriangleMesh rest, std::vector<TriangleMesh> targets,
+                                      const RigOptions& options) {
+  std::vector<TargetSpec> specs(targets.size());
+  for (size_t t = 0; t < targets.size(); ++t) {
+    specs[t].name = targets[t].name;
+    specs[t].mesh = std::move(targets[t]);
+  }
+  return RigBuilder::Build(std::move(rest), std::move(specs), options);
+}
+
+std::shared_ptr<const Rig> Rig::Build(TriangleMesh rest, std::vector<TargetSpec> targets,
                                       const RigOptions& options) {
   return RigBuilder::Build(std::move(rest), std::move(targets), options);
 }

@@ -1,5 +1,6 @@
 // Boundary conditions found at build time (paper section 3.4): static vertices, the user's fixed ones, an
 // open sheet's outer rim, and how the rigid motion is pinned down (or the gauge of a floating rig).
+#include <cmath>
 #include <fmt/format.h>
 
 #include <numeric>
@@ -63,8 +64,10 @@ void RigBuilder::BuildBoundary() {
     const double tol = rig.options_.static_tolerance * s.bounding_box_diagonal;
     for (int v = 0; v < n; ++v) {
       bool still = true;
+      const auto& masks = rig.internals_->controls.masks;
       for (size_t t = 0; t < rig.targets_.size() && still; ++t) {
-        still = (rig.targets_[t].vertices.row(v) - rest.row(v)).norm() <= tol;
+        const double scale = t < masks.size() && !masks[t].empty() ? std::abs(masks[t][v]) : 1.0;
+        still = scale * (rig.targets_[t].vertices.row(v) - rest.row(v)).norm() <= tol;
       }
       if (still) {
         fixed[v] = 1;

@@ -16,7 +16,7 @@ namespace springblend {
 
 class RigBuilder {
  public:
-  static std::shared_ptr<const Rig> Build(TriangleMesh rest, std::vector<TriangleMesh> targets,
+  static std::shared_ptr<const Rig> Build(TriangleMesh rest, std::vector<TargetSpec> targets,
                                           const RigOptions& options);
 
  private:
@@ -33,6 +33,12 @@ class RigBuilder {
   // shell.cc
   void BuildShell();
   void PlaceShell();
+  // shape_controls.cc
+  // Checks the specs and turns them into the sculpted shapes (targets_), the names and the controls.
+  void ExpandSpecs(std::vector<TargetSpec> specs);
+  // Scales each masked shape's offsets (every vertex; interior vertices take their nearest surface vertex's
+  // value) and rest-length changes (a spring by the mean of its ends), and refits its anchor motion.
+  void ApplyMasks();
   // rig_boundary.cc
   void BuildBoundary();
   // interior_placement.cc

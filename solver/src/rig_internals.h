@@ -14,7 +14,27 @@
 
 namespace springblend {
 
+namespace internal {
+
+// How the targets' weights drive the sculpted shapes (Rig::ShapeWeights).
+struct ShapeControls {
+  struct Knot {
+    double weight;  // in (0, 1]; the last knot of a target is its full shape at 1
+    int shape;
+  };
+  std::vector<std::vector<Knot>> targets;  // per target (frame weight), knots by ascending weight
+  struct Combination {
+    int shape;                 // the sculpt with every driver at 1
+    std::vector<int> drivers;  // targets
+  };
+  std::vector<Combination> combinations;
+  std::vector<std::vector<double>> masks;  // per shape: empty, or one value per surface vertex
+};
+
+}  // namespace internal
+
 struct Rig::Internals {
+  internal::ShapeControls controls;
   std::unique_ptr<internal::HessianPattern> pattern;
   // The symbolic factorization, analysed once; solvers clone it and only refactor numerically.
   std::unique_ptr<internal::SparseCholesky> cholesky;
@@ -40,8 +60,11 @@ inline SpringTopology TopologyOf(const Rig& rig) {
 inline std::array<double, 3> KindStiffness(const RigOptions& options) {
   return {options.structure_stiffness, options.bending_stiffness, options.internal_stiffness};
 }
-// Blended rest lengths r̄_q = r_q^0 + sum_t w_t (r_q^t - r_q^0), clamped from below; weights unchecked.
-void BlendRestLengths(const Rig& rig, const std::vector<double>& weights, std::vector<double>* blended);
+// Blended rest lengths r̄_q = r_q^0 + sum_s w_s (r_q^s - r_q^0) over the sculpted shapes (Rig::ShapeWeights),
+// clamped from below; weights unchecked.
+void BlendRestLengths(const Rig& rig, const std::vector<double>& shape_weights, std::vector<double>* blended);
+// rest + sum_s w_s (shape_s - rest) of every simulated vertex, per sculpted shape.
+Points LinearBlendShapes(const Rig& rig, const std::vector<double>& shape_weights);
 
 inline double StiffnessFloor(const Rig& rig) {
   return rig.options().min_stiffness_length * rig.summary().mean_rest_length;

@@ -79,13 +79,13 @@ class Solver::Impl {
   }
 
   SolveSummary Solve(const Frame& frame, Points* positions);
-  // The start for these weights (stacked 3n) from the linear blend of every simulated vertex.
-  void StartOf(const Points& linear, const std::vector<double>& weights,
+  // The start for these shape weights (stacked 3n) from the linear blend of every simulated vertex.
+  void StartOf(const Points& linear, const std::vector<double>& shape_weights,
                const std::optional<internal::AnchorMotion>& motion, Eigen::VectorXd* x) const {
     const int n = static_cast<int>(linear.rows());
     x->resize(3 * n);
     for (int v = 0; v < n; ++v) x->segment<3>(3 * v) = linear.row(v).transpose();
-    if (options_.use_target_paths) internal::AddPathCorrections(rig_->internals().paths, weights, motion, x);
+    if (options_.use_target_paths) internal::AddPathCorrections(rig_->internals().paths, shape_weights, motion, x);
   }
   const Points& all_positions() const { return previous_; }
   void SetColliders(std::vector<Collider> colliders) {
@@ -117,7 +117,7 @@ class Solver::Impl {
     if (!laplacian_) {
       const Rig& rig = *rig_;
       std::vector<double> rest_lengths;
-      internal::BlendRestLengths(rig, std::vector<double>(rig.num_targets(), 0.0), &rest_lengths);
+      internal::BlendRestLengths(rig, std::vector<double>(rig.num_shapes(), 0.0), &rest_lengths);
       internal::SpringSystem rest(internal::TopologyOf(rig));
       rest.SetRestLengths(std::move(rest_lengths), rig.spring_kind(), internal::KindStiffness(rig.options()),
                           internal::StiffnessFloor(rig));
@@ -179,9 +179,10 @@ SolveSummary Solver::Impl::Solve(const Frame& frame, Points* positions) {
 
   std::vector<std::pair<int, Eigen::Vector3d>> pins;
   for (const Pin& pin : frame.pins) pins.emplace_back(pin.vertex, pin.position);
-  const internal::FrameConditions conditions = internal::ConditionsOf(rig, frame.weights, linear, pins);
+  const std::vector<double> shape_weights = rig.ShapeWeights(frame.weights);
+  const internal::FrameConditions conditions = internal::ConditionsOf(rig, shape_weights, linear, pins);
   const BoundaryMode mode = conditions.mode;
-  StartOf(linear, frame.weights, conditions.motion, &x_);
+  StartOf(linear, shape_weights, conditions.motion, &x_);
   if (!internal::HoldConditions(rig, conditions, &x_, &held_)) {
     summary.termination = Termination::kNumericalFailure;
     summary.message = "the gauge vertices became collinear in the start configuration";
@@ -274,10 +275,10 @@ Points Solver::Start(const std::vector<double>& weights) const {
   const Points linear = LinearBlendAll(rig, weights);
   std::optional<internal::AnchorMotion> motion;
   if (rig.boundary_mode() == BoundaryMode::kAnchored) {
-    motion = internal::BlendAnchorMotions(rig.internals().anchor_motions, weights);
+    motion = internal::BlendAnchorMotions(rig.internals().anchor_motions, rig.ShapeWeights(weights));
   }
   Eigen::VectorXd x;
-  impl_->StartOf(linear, weights, motion, &x);
+  impl_->StartOf(linear, rig.ShapeWeights(weights), motion, &x);
   Points start(rig.num_vertices(), 3);
   for (int v = 0; v < rig.num_vertices(); ++v) start.row(v) = x.segment<3>(3 * v).transpose();
   return start;

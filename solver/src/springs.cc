@@ -29,13 +29,13 @@ void RigBuilder::CheckTargets(const TriangleMesh& rest, const std::vector<Triang
     }
     if (t.vertices.rows() != rest.vertices.rows()) {
       throw Error(ErrorCode::kInvalidInput,
-                  fmt::format("{}: target has {} vertices but the rest shape {} has {}", t.source,
-                              t.vertices.rows(), rest.source, rest.vertices.rows()));
+                  fmt::format("{}: target '{}' has {} vertices but the rest shape {} has {}", t.source,
+                              t.name, t.vertices.rows(), rest.source, rest.vertices.rows()));
     }
     if (t.faces.rows() != rest.faces.rows()) {
       throw Error(ErrorCode::kInvalidInput,
-                  fmt::format("{}: target has {} faces but the rest shape {} has {}", t.source,
-                              t.faces.rows(), rest.source, rest.faces.rows()));
+                  fmt::format("{}: target '{}' has {} faces but the rest shape {} has {}", t.source,
+                              t.name, t.faces.rows(), rest.source, rest.faces.rows()));
     }
     for (Eigen::Index f = 0; f < rest.faces.rows(); ++f) {
       if (t.faces.row(f) != rest.faces.row(f)) {

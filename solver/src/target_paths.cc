@@ -51,7 +51,7 @@ class PathSolver {
   // Solves alpha * target from the predictor's start. A tentative solve that fails is not counted.
   Sample Solve(double alpha, Predictor& predictor, TargetPathsReport& report, bool tentative = false) {
     const int n = rig_.num_vertices();
-    std::vector<double> weights(rig_.num_targets(), 0.0);
+    std::vector<double> weights(rig_.num_shapes(), 0.0);
     weights[target_] = alpha;
     Points linear = rig_.shape(0);
     if (alpha != 0.0) linear += alpha * (rig_.shape(target_ + 1) - rig_.shape(0));
@@ -106,7 +106,7 @@ class PathSolver {
 
 std::vector<TargetPath> BuildTargetPaths(const Rig& rig, int intervals, double extension, TargetPathsReport* report) {
   const auto start = std::chrono::steady_clock::now();
-  const int targets = rig.num_targets();
+  const int targets = rig.num_shapes();
   std::vector<TargetPath> paths(targets);
   std::vector<TargetPathsReport> reports(targets);
   const double step = 1.0 / intervals;

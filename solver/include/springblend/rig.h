@@ -137,11 +137,33 @@ struct RigSummary {
   std::vector<std::string> notes;  // decisions taken while building, in words
 };
 
+// A shape reached on the way to a target's full shape (Maya's in-between target).
+struct Inbetween {
+  double weight = 0.0;  // in (0, 1), distinct per target
+  TriangleMesh mesh;
+};
+
+// One target of a production rig (a rig file's entry). Weights blend piecewise linearly through the
+// in-betweens (each reproduced exactly at its weight); a combination (corrective) is on by the product of its
+// drivers' weights, and its mesh, the sculpt with every driver at 1, is reproduced exactly there; a mask
+// scales each vertex's offset and each spring's rest-length change (by the mean of its two vertices' values).
+struct TargetSpec {
+  std::string name;                      // unique among the targets
+  TriangleMesh mesh;                     // the shape at weight 1; a combination's with every driver at 1
+  std::vector<Inbetween> inbetweens;     // any order; none on a combination
+  std::vector<double> mask;              // empty, or one finite weight per rest-mesh vertex; none on a combination
+  std::vector<std::string> combination;  // >= 2 distinct names of targets that are not combinations; empty: ordinary
+};
+
 class Rig {
  public:
   // Validates and builds. Every target must have the rest shape's vertex count and faces. Throws Error
   // naming the file and the vertex or face at fault.
   static std::shared_ptr<const Rig> Build(TriangleMesh rest, std::vector<TriangleMesh> targets,
+                                          const RigOptions& options = {});
+  // The same for a production rig: in-betweens, combinations and masks. Errors name the target and the field
+  // ("target 'jawOpen': inbetweens[1].weight = 1.5 is outside (0, 1)").
+  static std::shared_ptr<const Rig> Build(TriangleMesh rest, std::vector<TargetSpec> targets,
                                           const RigOptions& options = {});
   ~Rig();
   Rig(const Rig&) = delete;
@@ -151,9 +173,17 @@ class Rig {
   const RigSummary& summary() const { return summary_; }
   int num_vertices() const { return summary_.vertices; }
   int num_surface_vertices() const { return summary_.surface_vertices; }
-  int num_targets() const { return static_cast<int>(targets_.size()); }
-  // Positions of every simulated vertex (#vertices by 3) in shape s: 0 is the rest shape, t + 1 target t.
-  // Rows [0, surface) are the mesh; then cap and interior vertices, placed in each target by a solve.
+  // The weights a frame gives: one per target that is not a combination, in the order built.
+  int num_targets() const { return static_cast<int>(target_names_.size()); }
+  // The sculpted shapes besides the rest shape: the targets at weight 1 (shape t is target t), then the
+  // in-betweens (by target, by weight), then the combinations' sculpts. A rig of plain targets has one each.
+  int num_shapes() const { return static_cast<int>(targets_.size()); }
+  // The weight of each sculpted shape (num_shapes) for a frame's target weights (num_targets, unchecked):
+  // the in-betweens' piecewise-linear hat functions (extrapolated linearly outside [0, 1]), a combination's
+  // product of its drivers' weights, less that product on each driver's full shape.
+  std::vector<double> ShapeWeights(const std::vector<double>& weights) const;
+  // Positions of every simulated vertex (#vertices by 3) in shape s: 0 is the rest shape, s + 1 sculpted
+  // shape s. Rows [0, surface) are the mesh; then cap and interior vertices, placed in each shape by a solve.
   const Points& shape(int s) const { return shapes_[s]; }
   // Tetrahedra of the rest volume (positively oriented in the rest shape); empty without an interior.
   const Tetrahedra& tetrahedra() const { return tets_; }
@@ -161,18 +191,20 @@ class Rig {
   const std::vector<int>& anchor_vertices() const { return anchor_; }
   int num_springs() const { return static_cast<int>(spring_a_.size()); }
   const TriangleMesh& rest() const { return rest_; }
-  const TriangleMesh& target(int t) const { return targets_[t]; }
-  std::vector<std::string> target_names() const;
+  // Sculpted shape s (masked where its target has a mask): target(t) for t < num_targets() is target t at 1.
+  const TriangleMesh& target(int s) const { return targets_[s]; }
+  const std::vector<std::string>& target_names() const { return target_names_; }
+  const std::vector<std::string>& combination_names() const { return combination_names_; }
 
   // Springs: endpoints a < b, kind, and rest length in the rest shape and per target.
   const std::vector<int>& spring_a() const { return spring_a_; }
   const std::vector<int>& spring_b() const { return spring_b_; }
   const std::vector<SpringKind>& spring_kind() const { return spring_kind_; }
   const std::vector<double>& rest_lengths() const { return rest_length0_; }
-  // r_q^t - r_q^0 for target t.
-  const std::vector<double>& rest_length_delta(int t) const { return rest_length_delta_[t]; }
-  // Whether target t changes any rest length at all (a weight on it can then be skipped).
-  bool target_changes_lengths(int t) const { return target_changes_lengths_[t] != 0; }
+  // r_q^s - r_q^0 for sculpted shape s.
+  const std::vector<double>& rest_length_delta(int s) const { return rest_length_delta_[s]; }
+  // Whether shape s changes any rest length at all (a weight on it can then be skipped).
+  bool target_changes_lengths(int s) const { return target_changes_lengths_[s] != 0; }
 
   // Boundary conditions: sorted vertex indices, moved with the linear blendshape.
   const std::vector<int>& fixed_vertices() const { return fixed_vertices_; }
@@ -197,7 +229,8 @@ class Rig {
   RigOptions options_;
   RigSummary summary_;
   TriangleMesh rest_;
-  std::vector<TriangleMesh> targets_;
+  std::vector<TriangleMesh> targets_;  // the sculpted shapes
+  std::vector<std::string> target_names_, combination_names_;
   std::vector<Points> shapes_;
   Tetrahedra tets_;
   std::vector<int> anchor_;
