@@ -52,6 +52,60 @@ def load_obj(path):
     return (np.array(vertices, dtype=np.float32).astype(np.float64), np.array(faces, dtype=np.int32))
 
 
+def drag(client, character, args, count, previews):
+    """One Interactive session: count frames at args.fps along the slider path; the answers' figures."""
+    sent = [None] * count       # monotonic send time per index
+    answers = []                # (index, received, converged, newton_iterations, solve_ms)
+    errors = []
+    with client.interactive(character.id, previews=previews) as session:
+        def read():
+            try:
+                for frame in session:
+                    s = frame.summary
+                    answers.append((frame.index, time.monotonic(), bool(s.converged), int(s.newton_iterations),
+                                    float(s.solve_ms)))
+            except Exception as error:  # reported below; the drag itself goes on
+                errors.append(repr(error))
+
+        reader = threading.Thread(target=read)
+        reader.start()
+        t0 = time.monotonic()
+        for k in range(count):
+            due = t0 + k / args.fps
+            delay = due - time.monotonic()
+            if delay > 0:
+                time.sleep(delay)
+            sent[k] = time.monotonic()
+            session.send(weights_at(k / args.fps))
+        last_sent = sent[-1]
+        session.close()
+        reader.join(600.0)
+    if errors:
+        raise RuntimeError(f"the session failed: {errors[0]}")
+    latencies = [received - sent[index] for index, received, *_ in answers]
+    solved = [a for a in answers if a[2]]
+    during = [a for a in answers if a[1] <= last_sent]
+    last = [a for a in answers if a[0] == count - 1 and a[2]] or [a for a in answers if a[0] == count - 1]
+    first_sent = sent[0]
+    last_received = max((a[1] for a in answers), default=first_sent)
+    return {
+        "previews": previews, "answers": len(answers), "answers_converged": len(solved),
+        "answers_during_drag": len(during),
+        "answers_per_s": len(answers) / max(1e-9, last_received - first_sent),
+        "answers_per_s_during_drag": len(during) / max(1e-9, last_sent - first_sent),
+        "latency_median_ms": 1000 * statistics.median(latencies) if latencies else None,
+        "latency_max_ms": 1000 * max(latencies) if latencies else None,
+        "converged_latency_median_ms":
+            1000 * statistics.median(a[1] - sent[a[0]] for a in solved) if solved else None,
+        "last_frame_to_answer_ms": 1000 * (last[-1][1] - last_sent) if last else None,
+        "last_answer_converged": bool(last[-1][2]) if last else None,
+        "solve_ms_median": statistics.median(a[4] for a in solved) if solved else None,
+        "newton_iterations_median": statistics.median(a[3] for a in solved) if solved else None,
+        "frames": [{"index": a[0], "latency_ms": 1000 * (a[1] - sent[a[0]]), "converged": a[2],
+                    "newton_iterations": a[3], "solve_ms": a[4]} for a in answers],
+    }
+
+
 def weights_at(t):
     return [a * 0.5 * (1.0 - math.cos(2.0 * math.pi * t / p)) for a, p in zip(AMPLITUDES, PERIODS_S)]
 
@@ -154,60 +208,23 @@ def main():
         character = client.upload(rest, faces, targets, name="face-mix")
         upload_s = time.monotonic() - start
 
-        sent = [None] * count       # monotonic send time per index
-        answers = []                # (index, received, converged, newton_iterations, solve_ms)
-        errors = []
-        with client.interactive(character.id) as session:
-            def read():
-                try:
-                    for frame in session:
-                        s = frame.summary
-                        answers.append((frame.index, time.monotonic(), bool(s.converged), int(s.newton_iterations),
-                                        float(s.solve_ms)))
-                except Exception as error:  # reported below; the drag itself goes on
-                    errors.append(repr(error))
+        runs = [drag(client, character, args, count, previews) for previews in (False, True)]
 
-            reader = threading.Thread(target=read)
-            reader.start()
-            t0 = time.monotonic()
-            for k in range(count):
-                due = t0 + k / args.fps
-                delay = due - time.monotonic()
-                if delay > 0:
-                    time.sleep(delay)
-                sent[k] = time.monotonic()
-                session.send(weights_at(k / args.fps))
-            last_sent = sent[-1]
-            session.close()
-            reader.join(600.0)
-        if errors:
-            raise RuntimeError(f"the session failed: {errors[0]}")
-
-    latencies = [received - sent[index] for index, received, *_ in answers]
-    during = [a for a in answers if a[1] <= last_sent]
-    last = [a for a in answers if a[0] == count - 1]
-    first_sent = sent[0]
-    last_received = max((a[1] for a in answers), default=first_sent)
-    figures = {
-        "fps": args.fps, "seconds": args.seconds, "frames_sent": count, "answers": len(answers),
-        "answers_converged": sum(1 for a in answers if a[2]),
-        "answers_during_drag": len(during),
-        "answers_per_s": len(answers) / max(1e-9, last_received - first_sent),
-        "answers_per_s_during_drag": len(during) / max(1e-9, last_sent - first_sent),
-        "latency_median_ms": 1000 * statistics.median(latencies) if latencies else None,
-        "latency_max_ms": 1000 * max(latencies) if latencies else None,
-        "last_frame_to_answer_ms": 1000 * (last[0][1] - last_sent) if last else None,
-        "last_answer_converged": bool(last[0][2]) if last else None,
-        "solve_ms_median": statistics.median(a[4] for a in answers) if answers else None,
-        "newton_iterations_median": statistics.median(a[3] for a in answers) if answers else None,
-        "upload_s": upload_s, "vertices": int(character.summary.vertices),
-        "server_precompute_ms": float(character.summary.precompute_ms),
-        "frames": [{"index": a[0], "latency_ms": 1000 * (a[1] - sent[a[0]]), "converged": a[2],
-                    "newton_iterations": a[3], "solve_ms": a[4]} for a in answers],
-    }
+    figures = {"fps": args.fps, "seconds": args.seconds, "frames_sent": count, "upload_s": upload_s,
+               "vertices": int(character.summary.vertices),
+               "server_precompute_ms": float(character.summary.precompute_ms),
+               "without_previews": runs[0], "with_previews": runs[1]}
 
     def ms(value):
         return "-" if value is None else f"{value:.0f}"
+
+    def row(name, run):
+        unconverged = "" if run["last_answer_converged"] in (None, True) else " (not converged)"
+        return (f"| {name} | {count} | {run['answers']} | {run['answers_converged']} | "
+                f"{run['answers_per_s_during_drag']:.1f} | {ms(run['latency_median_ms'])} | "
+                f"{ms(run['latency_max_ms'])} | {ms(run['converged_latency_median_ms'])} | "
+                f"{ms(run['last_frame_to_answer_ms'])}{unconverged} | {ms(run['solve_ms_median'])} | "
+                f"{run['newton_iterations_median']} |\n")
 
     markdown = header + (
         f"ICT face with five expressions (jawOpen, mouthSmile_L, mouthSmile_R, eyeBlink_L, browInnerUp_L; "
@@ -215,18 +232,17 @@ def main():
         f"loopback (default workers, temporary cache; upload and build {upload_s:.1f} s, of which rig build "
         f"{figures['server_precompute_ms'] / 1000:.1f} s). One Interactive session; {count} frames sent at "
         f"{args.fps:g} per second for {args.seconds:g} s along a smooth path (each slider "
-        f"a * (1 - cos(2 pi t / T)) / 2), answers read on another thread. The server answers the newest frame it "
-        f"has and drops overtaken ones.\n\n"
-        "| frames sent | answers | converged | answers/s (first send to last answer) | answers/s during the drag "
-        "| latency median ms | latency max ms | last frame sent to its converged answer ms | server solve ms median "
-        "| Newton it median |\n"
-        "|---|---|---|---|---|---|---|---|---|---|\n"
-        f"| {count} | {len(answers)} | {figures['answers_converged']} | {figures['answers_per_s']:.1f} | "
-        f"{figures['answers_per_s_during_drag']:.1f} | {ms(figures['latency_median_ms'])} | "
-        f"{ms(figures['latency_max_ms'])} | {ms(figures['last_frame_to_answer_ms'])}"
-        f"{'' if figures['last_answer_converged'] in (None, True) else ' (not converged)'} | "
-        f"{ms(figures['solve_ms_median'])} | {figures['newton_iterations_median']} |\n\n"
-        "Latency: from a frame's send to its answer, over the answered frames. Every frame's figures: slider.json.\n")
+        f"a * (1 - cos(2 pi t / T)) / 2), answers read on another thread, once without and once with previews. "
+        f"The server answers the newest frame it has and drops overtaken ones.\n\n"
+        "| session | frames sent | answers | converged | answers/s during the drag | latency median ms "
+        "| latency max ms | converged latency median ms | last frame sent to its converged answer ms "
+        "| server solve ms median | Newton it median |\n"
+        "|---|---|---|---|---|---|---|---|---|---|---|\n"
+        + "".join(row(name, run) for name, run in (("solves only", runs[0]), ("with previews", runs[1]))) + "\n"
+        "Latency: from a frame's send to its answer (a preview or a solve), over the answers; converged latency: "
+        "the same over the solved answers only. With previews (InteractiveStart.previews) every frame taken up is "
+        "answered at once by the rig's prediction, then solved unless a newer frame overtakes it. Every frame's "
+        "figures: slider.json.\n")
     write(out, markdown, figures)
     return 0
 

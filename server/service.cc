@@ -404,6 +404,7 @@ class InteractiveReactor final : public grpc::ServerBidiReactor<grpc::ByteBuffer
       }
       started_ = true;
       start_ = incoming_.start();
+      previews_ = start_.previews();
     } else if (incoming_.has_frame()) {
       if (pending_) ++dropped_;
       pending_ = std::move(*incoming_.mutable_frame());
@@ -427,7 +428,7 @@ class InteractiveReactor final : public grpc::ServerBidiReactor<grpc::ByteBuffer
     } else if (cancelled_) {
       pending_.reset();
       FinishLocked(lock, StoppedStatus(*watch_, "the client cancelled the session"));
-    } else if (pending_) {
+    } else if (pending_ || previewed_) {
       Schedule(lock);
     } else if (reads_done_) {
       FinishLocked(lock, grpc::Status::OK);
@@ -437,6 +438,7 @@ class InteractiveReactor final : public grpc::ServerBidiReactor<grpc::ByteBuffer
     std::unique_lock lock(mutex_);
     cancelled_ = true;
     pending_.reset();
+    previewed_.reset();
     FinishIfIdle(lock, StoppedStatus(*watch_, "the client cancelled the session"));
   }
   void OnDone() override {
@@ -459,6 +461,7 @@ class InteractiveReactor final : public grpc::ServerBidiReactor<grpc::ByteBuffer
   // A bad message: finish now, or, while a job runs or a write is in flight, when that ends. Reading stops.
   void Refuse(std::unique_lock<std::mutex>& lock, const grpc::Status& status) {
     pending_.reset();
+    previewed_.reset();
     if (Idle()) {
       FinishLocked(lock, status);
     } else {
@@ -468,7 +471,7 @@ class InteractiveReactor final : public grpc::ServerBidiReactor<grpc::ByteBuffer
   // Queues a job when there is work (the start, or a pending frame) and nothing runs or is being written.
   // False (and the session finished) when the queue refuses the session's first job.
   bool Schedule(std::unique_lock<std::mutex>& lock) {
-    if (!Idle() || (!pending_ && setup_requested_) || cancelled_) return true;
+    if (!Idle() || (!pending_ && !previewed_ && setup_requested_) || cancelled_) return true;
     const bool first = !setup_requested_;
     setup_requested_ = true;
     job_running_ = true;
@@ -497,7 +500,7 @@ class InteractiveReactor final : public grpc::ServerBidiReactor<grpc::ByteBuffer
         return;
       }
     }
-    if (!pending_ || cancelled_ || refused_) {
+    if ((!pending_ && !previewed_) || cancelled_ || refused_) {
       job_running_ = false;
       if (refused_) {
         FinishLocked(lock, *refused_);
@@ -508,19 +511,40 @@ class InteractiveReactor final : public grpc::ServerBidiReactor<grpc::ByteBuffer
       }
       return;
     }
-    const v1::FrameRequest request = std::move(*pending_);
-    const std::uint32_t index = pending_index_;
+    // The newest frame wins: a frame that arrived meanwhile replaces one whose preview went out unsolved.
+    bool preview = false;
+    if (pending_) {
+      if (previewed_) ++dropped_;
+      previewed_.reset();
+      preview = previews_;
+    }
+    v1::FrameRequest request = pending_ ? std::move(*pending_) : std::move(*previewed_);
+    const std::uint32_t index = pending_ ? pending_index_ : previewed_index_;
     pending_.reset();
+    previewed_.reset();
     lock.unlock();
     grpc::Status status;
     try {
       const Frame frame = ToFrame(request, *entry_->rig, colliders_, index, context_.limits);
       Points positions;
-      const SolveSummary summary = solver_->Solve(frame, &positions);
-      context_.metrics.CountFrame(summary.solve_ms / 1000.0, summary.newton_iterations, summary.converged());
+      SolveSummary summary;
+      if (preview) {
+        // The rig's prediction for these weights (the start of the frame's solve), at once; its solve follows
+        // unless a newer frame comes first.
+        const auto start = std::chrono::steady_clock::now();
+        positions = solver_->Start(frame.weights).topRows(entry_->rig->num_surface_vertices());
+        summary.termination = Termination::kMaxIterations;
+        summary.message = "preview: the rig's prediction for these weights (colliders and pins not yet solved)";
+        summary.solve_ms = std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - start).count();
+      } else {
+        summary = solver_->Solve(frame, &positions);
+        context_.metrics.CountFrame(summary.solve_ms / 1000.0, summary.newton_iterations, summary.converged());
+      }
       CheckSolved(positions, index);
-      out_ = Serialize(ToProto(static_cast<int>(index), positions, entry_->rig->rest().faces, summary,
-                               job_.with_normals, context_.replica_name));
+      v1::SolvedFrame solved = ToProto(static_cast<int>(index), positions, entry_->rig->rest().faces, summary,
+                                       job_.with_normals, context_.replica_name);
+      if (preview) solved.mutable_summary()->set_termination("preview");
+      out_ = Serialize(solved);
     } catch (const std::exception& e) {
       status = ToStatus(e);
     }
@@ -534,6 +558,12 @@ class InteractiveReactor final : public grpc::ServerBidiReactor<grpc::ByteBuffer
     if (cancelled_ || refused_) {
       FinishLocked(lock, refused_ ? *refused_ : StoppedStatus(*watch_, "the client cancelled the session"));
       return;
+    }
+    if (preview && !pending_) {
+      previewed_ = std::move(request);
+      previewed_index_ = index;
+    } else if (preview) {
+      ++dropped_;  // overtaken while its preview was made: only the newer frame is solved
     }
     writing_ = true;
     watch_->Waiting();
@@ -574,6 +604,9 @@ class InteractiveReactor final : public grpc::ServerBidiReactor<grpc::ByteBuffer
   std::unique_ptr<Solver> solver_;
   grpc::ByteBuffer out_;
   std::optional<v1::FrameRequest> pending_;
+  std::optional<v1::FrameRequest> previewed_;  // a frame whose preview was sent and whose solve is due
+  std::uint32_t previewed_index_ = 0;
+  bool previews_ = false;                      // InteractiveStart.previews
   std::optional<grpc::Status> refused_;  // a bad message arrived while a job ran or a write was in flight
   std::uint32_t pending_index_ = 0, received_ = 0, dropped_ = 0;
   std::mutex mutex_;  // guards the session's state below and above

@@ -10,6 +10,7 @@
 #include <cmath>
 #include <future>
 #include <limits>
+#include <set>
 #include <sstream>
 #include <thread>
 
@@ -270,6 +271,84 @@ TEST_F(InProcessServerTest, InteractiveConvertsItsCollidersOnceAndAnswersEveryFr
   EXPECT_NO_THROW(session->Finish());
   EXPECT_EQ(Metric(*server_, "springblend_colliders_converted_total"), converted + 2) << "two colliders, once";
   EXPECT_EQ(Metric(*server_, "springblend_frames_solved_total"), 5);
+}
+
+// With previews, a frame taken up is answered at once by the rig's prediction (here, without target paths,
+// the linear blend), marked not converged, then by its solve: the one-frame Solve of the same weights.
+TEST_F(InProcessServerTest, InteractivePreviewsComeFirstThenTheSolve) {
+  const std::string id = UploadCylinder(*client_);
+  RigOptions local;
+  local.target_paths = false;
+  const auto rig = Rig::Build(cylinder_.rest, cylinder_.targets, local);
+  const double diagonal = rig->summary().bounding_box_diagonal;
+  v1::InteractiveStart start;
+  start.set_character_id(id);
+  start.set_previews(true);
+  auto session = client_->StartInteractive(start);
+  v1::FrameRequest frame;
+  frame.add_weights(0.7);
+  frame.add_weights(0.3);
+  ASSERT_TRUE(session->Send(frame));
+  v1::SolvedFrame preview, solved;
+  ASSERT_TRUE(session->Next(&preview));
+  ASSERT_TRUE(session->Next(&solved));
+  session->Close();
+  v1::SolvedFrame more;
+  EXPECT_FALSE(session->Next(&more));
+  EXPECT_NO_THROW(session->Finish());
+  EXPECT_EQ(preview.index(), 0u);
+  EXPECT_FALSE(preview.summary().converged());
+  EXPECT_EQ(preview.summary().termination(), "preview");
+  EXPECT_LE(testing::MaxDistance(Client::Decode(preview.positions()), LinearBlend(*rig, {0.7, 0.3})), 1e-6 * diagonal);
+  EXPECT_EQ(solved.index(), 0u);
+  EXPECT_TRUE(solved.summary().converged());
+  v1::SolveRequest request;
+  request.set_character_id(id);
+  *request.add_frames() = frame;
+  std::string alone;
+  client_->Solve(request, [&](const v1::SolvedFrame& f) { alone = f.positions(); });
+  EXPECT_EQ(solved.positions(), alone) << "the settled answer is the one-frame Solve";
+  EXPECT_GT(testing::MaxDistance(Client::Decode(preview.positions()), Client::Decode(alone)), 1e-4 * diagonal)
+      << "the preview is not already the answer (else this test shows nothing)";
+}
+
+// A burst of frames with previews: every answer is a preview or a solve of a frame sent, a solve always comes
+// after its frame's preview, overtaken frames are not solved, and the last frame's solve ends the stream.
+TEST_F(InProcessServerTest, InteractivePreviewsOfABurstEndWithTheLastFrameSolved) {
+  const std::string id = UploadCylinder(*client_);
+  v1::InteractiveStart start;
+  start.set_character_id(id);
+  start.set_previews(true);
+  auto session = client_->StartInteractive(start);
+  constexpr int kFrames = 20;
+  for (int i = 0; i < kFrames; ++i) {
+    v1::FrameRequest frame;
+    frame.add_weights(0.05 * i);
+    frame.add_weights(0.02 * i);
+    ASSERT_TRUE(session->Send(frame));
+  }
+  session->Close();
+  std::vector<v1::SolvedFrame> answers;
+  for (v1::SolvedFrame answer; session->Next(&answer);) answers.push_back(answer);
+  EXPECT_NO_THROW(session->Finish());
+  ASSERT_FALSE(answers.empty());
+  std::set<unsigned> previewed, solved;
+  unsigned newest = 0;
+  for (const v1::SolvedFrame& answer : answers) {
+    ASSERT_LT(answer.index(), static_cast<unsigned>(kFrames));
+    EXPECT_GE(answer.index(), newest) << "answers never go back to an older frame";
+    newest = answer.index();
+    if (answer.summary().termination() == "preview") {
+      EXPECT_FALSE(answer.summary().converged());
+      EXPECT_TRUE(previewed.insert(answer.index()).second) << "one preview per frame";
+    } else {
+      EXPECT_TRUE(answer.summary().converged()) << answer.summary().message();
+      EXPECT_TRUE(previewed.count(answer.index())) << "frame " << answer.index() << " solved before its preview";
+      EXPECT_TRUE(solved.insert(answer.index()).second) << "one solve per frame";
+    }
+  }
+  EXPECT_EQ(answers.back().index(), static_cast<unsigned>(kFrames - 1));
+  EXPECT_TRUE(answers.back().summary().converged()) << "the last frame is solved";
 }
 
 // A reader that stops reading holds at most the frames in flight (one being written, up to one per worker

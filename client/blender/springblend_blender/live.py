@@ -10,8 +10,8 @@ The Channel's sender thread owns the gRPC calls (it looks up the character, open
 reader thread waits for answers; neither calls bpy.
 
 Answers the server marks as not converged are shown at once and replaced by a converged answer for the same
-frame when one comes (today's server solves each frame to the end, so it never sends such previews, but a
-frame that ends unconverged is shown and its state says so). An answer older than the one shown is dropped.
+frame when one comes (the session asks for previews: the server answers each frame at once with the rig's
+prediction, then with its solve; a frame that ends unconverged is shown too and its state says so). An answer older than the one shown is dropped.
 
 Turning it off, loading another file, or a failure (the server gone, the character unknown) stops it and
 leaves the mesh as it was: the live key is removed, the bake it hid shows again, and a report says why.
@@ -174,7 +174,7 @@ class Channel:
                     return
 
     def _open_session(self):
-        self._session = self._client.interactive(self._character_id, colliders=self._colliders)
+        self._session = self._client.interactive(self._character_id, colliders=self._colliders, previews=True)
         self._generation += 1
         reader = threading.Thread(target=self._read_loop, args=(self._session, self._generation),
                                   name="springblend-live-read", daemon=True)

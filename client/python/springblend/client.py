@@ -199,12 +199,15 @@ class Client:
             raise SpringblendError.from_rpc_error(error) from None
 
     def interactive(self, character_id, colliders=(), tolerance=0.0, max_iterations=0, linear=False,
-                    normals=False):
-        """Opens an interactive (slider) session; see InteractiveSession."""
+                    normals=False, previews=False):
+        """Opens an interactive (slider) session; see InteractiveSession. previews=True: each frame is first
+        answered at once by its preview (the rig's prediction; summary.converged False, termination "preview"),
+        then by its solve unless a newer frame overtakes it."""
         start = pb.InteractiveStart(
             character_id=character_id, colliders=list(colliders),
             options=pb.SolveOptions(residual_tolerance=float(tolerance), max_iterations=int(max_iterations),
-                                    linear=bool(linear), with_normals=bool(normals)))
+                                    linear=bool(linear), with_normals=bool(normals)),
+            previews=bool(previews))
         return InteractiveSession(self._solves, start, self.timeout)
 
     def _call(self, method, request, character_id=""):
