@@ -372,10 +372,13 @@ class SolveReactor final : public grpc::ServerWriteReactor<grpc::ByteBuffer> {
 };
 
 // An interactive session. Frames arrive on gRPC threads and only replace the pending one; a pool job solves
-// the newest pending frame and hands it to gRPC, and the next job is queued when that write completes (or when
-// a frame arrives while nothing runs). No worker ever waits on the client. The colliders are converted and the
-// Solver made once, at the start, and live as long as the session; every frame is solved alone (stateless
-// frames), so the settled answer equals a one-frame Solve of the same weights.
+// the newest pending frame, and, with previews, another pool job answers the newest frame at once with the
+// rig's prediction (a few milliseconds) while a solve may still run. Answers wait in a two-slot outbox (the
+// newest preview, the newest solve) and go out one write at a time, by increasing frame index; an answer
+// older than one already sent is dropped (a solve overtaken by a newer frame's preview). No worker ever waits
+// on the client: a job stores its answer and returns. The colliders are converted and the Solver made once, at
+// the start, and live as long as the session; every frame is solved alone (stateless frames), so the settled
+// answer equals a one-frame Solve of the same weights.
 class InteractiveReactor final : public grpc::ServerBidiReactor<grpc::ByteBuffer, grpc::ByteBuffer> {
  public:
   InteractiveReactor(grpc::CallbackServerContext* call, ServiceContext& context)
@@ -389,7 +392,11 @@ class InteractiveReactor final : public grpc::ServerBidiReactor<grpc::ByteBuffer
     if (finished_) return;
     if (!ok) {
       reads_done_ = true;
-      FinishIfIdle(lock, cancelled_ ? StoppedStatus(*watch_, "the client cancelled the session") : grpc::Status::OK);
+      if (cancelled_) {
+        FinishIfIdle(lock, StoppedStatus(*watch_, "the client cancelled the session"));
+      } else {
+        FinishIfDone(lock);
+      }
       return;
     }
     if (!Parse(bytes_, &incoming_)) {
@@ -407,8 +414,9 @@ class InteractiveReactor final : public grpc::ServerBidiReactor<grpc::ByteBuffer
       previews_ = start_.previews();
     } else if (incoming_.has_frame()) {
       if (pending_) ++dropped_;
-      pending_ = std::move(*incoming_.mutable_frame());
-      pending_index_ = received_++;
+      const std::uint32_t index = received_++;
+      if (previews_) to_preview_ = Job{*incoming_.mutable_frame(), index};
+      pending_ = Job{std::move(*incoming_.mutable_frame()), index};
     } else {
       Refuse(lock, BadMessage("only the first message may be a start message"));
       return;
@@ -424,21 +432,20 @@ class InteractiveReactor final : public grpc::ServerBidiReactor<grpc::ByteBuffer
     writing_ = false;
     if (!ok) cancelled_ = true;
     if (refused_) {
-      FinishLocked(lock, *refused_);
+      FinishIfIdle(lock, *refused_);
     } else if (cancelled_) {
-      pending_.reset();
-      FinishLocked(lock, StoppedStatus(*watch_, "the client cancelled the session"));
-    } else if (pending_ || previewed_) {
+      Clear();
+      FinishIfIdle(lock, StoppedStatus(*watch_, "the client cancelled the session"));
+    } else {
+      Flush(lock);
       Schedule(lock);
-    } else if (reads_done_) {
-      FinishLocked(lock, grpc::Status::OK);
+      FinishIfDone(lock);
     }
   }
   void OnCancel() override {
     std::unique_lock lock(mutex_);
     cancelled_ = true;
-    pending_.reset();
-    previewed_.reset();
+    Clear();
     FinishIfIdle(lock, StoppedStatus(*watch_, "the client cancelled the session"));
   }
   void OnDone() override {
@@ -447,6 +454,15 @@ class InteractiveReactor final : public grpc::ServerBidiReactor<grpc::ByteBuffer
   }
 
  private:
+  struct Job {
+    v1::FrameRequest frame;
+    std::uint32_t index = 0;
+  };
+  struct Answer {
+    grpc::ByteBuffer bytes;
+    std::uint32_t index = 0;
+  };
+
   // All with mutex_ held. Finish is called exactly once, and never while a job runs or a write is in flight.
   void FinishLocked(std::unique_lock<std::mutex>&, const grpc::Status& status) {
     if (finished_) return;
@@ -454,121 +470,204 @@ class InteractiveReactor final : public grpc::ServerBidiReactor<grpc::ByteBuffer
     context_.metrics.CountRequest("Interactive", CodeName(status.error_code()));
     Finish(status);
   }
-  bool Idle() const { return !job_running_ && !writing_; }
+  bool Idle() const { return !solving_ && !previewing_ && !writing_; }
   void FinishIfIdle(std::unique_lock<std::mutex>& lock, const grpc::Status& status) {
     if (Idle()) FinishLocked(lock, status);
   }
-  // A bad message: finish now, or, while a job runs or a write is in flight, when that ends. Reading stops.
-  void Refuse(std::unique_lock<std::mutex>& lock, const grpc::Status& status) {
-    pending_.reset();
-    previewed_.reset();
-    if (Idle()) {
-      FinishLocked(lock, status);
-    } else {
-      refused_ = status;
+  // The client half-closed and every frame it sent is answered (or overtaken): the stream ends OK.
+  void FinishIfDone(std::unique_lock<std::mutex>& lock) {
+    if (reads_done_ && !pending_ && !to_preview_ && !outbox_preview_ && !outbox_solved_) {
+      FinishIfIdle(lock, grpc::Status::OK);
     }
   }
-  // Queues a job when there is work (the start, or a pending frame) and nothing runs or is being written.
-  // False (and the session finished) when the queue refuses the session's first job.
+  void Clear() {
+    pending_.reset();
+    to_preview_.reset();
+    outbox_preview_.reset();
+    outbox_solved_.reset();
+  }
+  // A bad message: finish now, or, while a job runs or a write is in flight, when that ends. Reading stops.
+  void Refuse(std::unique_lock<std::mutex>& lock, const grpc::Status& status) {
+    Clear();
+    if (!refused_) refused_ = status;
+    FinishIfIdle(lock, status);
+  }
+  // A job failed: the session ends with its status once nothing else runs.
+  void Fail(std::unique_lock<std::mutex>& lock, const grpc::Status& status) { Refuse(lock, status); }
+
+  // Queues the jobs there is work for: the setup (with the first frame's solve), a solve of the newest frame
+  // when none runs, a preview of the newest frame when none runs. False (and the session finished) when the
+  // queue refuses the session's first job.
   bool Schedule(std::unique_lock<std::mutex>& lock) {
-    if (!Idle() || (!pending_ && !previewed_ && setup_requested_) || cancelled_) return true;
-    const bool first = !setup_requested_;
-    setup_requested_ = true;
-    job_running_ = true;
-    const bool queued = first ? context_.pool.TrySubmit([this] { Work(); })
-                              : context_.pool.SubmitContinuation([this] { Work(); });
-    if (!queued) {
-      job_running_ = false;
-      pending_.reset();
-      FinishLocked(lock, first ? kQueueFull : kShuttingDown);
-      return false;
+    if (cancelled_ || refused_ || finished_) return true;
+    if (!setup_requested_) {
+      setup_requested_ = true;
+      solving_ = true;
+      if (!context_.pool.TrySubmit([this] { RunSolve(); })) {
+        solving_ = false;
+        Clear();
+        FinishLocked(lock, kQueueFull);
+        return false;
+      }
+      return true;
+    }
+    if (!ready_) return true;  // the setup job is still running; it schedules again when done
+    if (pending_ && !solving_) {
+      solving_ = true;
+      if (!context_.pool.SubmitContinuation([this] { RunSolve(); })) {
+        solving_ = false;
+        Clear();
+        refused_ = kShuttingDown;
+        FinishIfIdle(lock, kShuttingDown);
+        return false;
+      }
+    }
+    if (to_preview_ && !previewing_) {
+      previewing_ = true;
+      if (!context_.pool.SubmitContinuation([this] { RunPreview(); })) {
+        previewing_ = false;
+        Clear();
+        refused_ = kShuttingDown;
+        FinishIfIdle(lock, kShuttingDown);
+        return false;
+      }
     }
     return true;
   }
 
-  // On a pool worker: at most one frame, then the write is handed to gRPC and the worker goes back.
-  void Work() {
-    std::unique_lock lock(mutex_);
-    if (!solver_) {
-      lock.unlock();
-      grpc::Status status = Start();
-      lock.lock();
-      if (!status.ok()) {
-        job_running_ = false;
-        pending_.reset();
-        FinishLocked(lock, status);
-        return;
-      }
+  // Starts the next write, if none is in flight: the outbox's answer of the lower frame index first; an answer
+  // older than one already sent is dropped.
+  void Flush(std::unique_lock<std::mutex>& lock) {
+    if (writing_ || cancelled_ || refused_ || finished_) return;
+    const auto stale = [this](const std::optional<Answer>& a, bool solved) {
+      if (!a || !sent_any_) return false;
+      return solved ? (a->index < sent_index_ || (a->index == sent_index_ && sent_solved_)) : a->index <= sent_index_;
+    };
+    if (stale(outbox_solved_, true)) outbox_solved_.reset();
+    if (stale(outbox_preview_, false)) outbox_preview_.reset();
+    std::optional<Answer>* next = nullptr;
+    bool solved = false;
+    if (outbox_solved_ && (!outbox_preview_ || outbox_solved_->index <= outbox_preview_->index)) {
+      next = &outbox_solved_;
+      solved = true;
+    } else if (outbox_preview_) {
+      next = &outbox_preview_;
     }
-    if ((!pending_ && !previewed_) || cancelled_ || refused_) {
-      job_running_ = false;
-      if (refused_) {
-        FinishLocked(lock, *refused_);
-      } else if (cancelled_) {
-        FinishLocked(lock, StoppedStatus(*watch_, "the client cancelled the session"));
-      } else if (reads_done_) {
-        FinishLocked(lock, grpc::Status::OK);
-      }
-      return;
+    if (next == nullptr) return;
+    out_ = std::move((*next)->bytes);
+    if (!sent_any_ || (*next)->index > sent_index_) sent_solved_ = false;
+    sent_index_ = (*next)->index;
+    sent_any_ = true;
+    if (solved) {
+      sent_solved_ = true;
+      // A preview of the frame just solved says nothing new.
+      if (outbox_preview_ && outbox_preview_->index <= sent_index_) outbox_preview_.reset();
     }
-    // The newest frame wins: a frame that arrived meanwhile replaces one whose preview went out unsolved.
-    bool preview = false;
-    if (pending_) {
-      if (previewed_) ++dropped_;
-      previewed_.reset();
-      preview = previews_;
-    }
-    v1::FrameRequest request = pending_ ? std::move(*pending_) : std::move(*previewed_);
-    const std::uint32_t index = pending_ ? pending_index_ : previewed_index_;
-    pending_.reset();
-    previewed_.reset();
-    lock.unlock();
-    grpc::Status status;
-    try {
-      const Frame frame = ToFrame(request, *entry_->rig, colliders_, index, context_.limits);
-      Points positions;
-      SolveSummary summary;
-      if (preview) {
-        // The rig's prediction for these weights (the start of the frame's solve), at once; its solve follows
-        // unless a newer frame comes first.
-        const auto start = std::chrono::steady_clock::now();
-        positions = solver_->Start(frame.weights).topRows(entry_->rig->num_surface_vertices());
-        summary.termination = Termination::kMaxIterations;
-        summary.message = "preview: the rig's prediction for these weights (colliders and pins not yet solved)";
-        summary.solve_ms = std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - start).count();
-      } else {
-        summary = solver_->Solve(frame, &positions);
-        context_.metrics.CountFrame(summary.solve_ms / 1000.0, summary.newton_iterations, summary.converged());
-      }
-      CheckSolved(positions, index);
-      v1::SolvedFrame solved = ToProto(static_cast<int>(index), positions, entry_->rig->rest().faces, summary,
-                                       job_.with_normals, context_.replica_name);
-      if (preview) solved.mutable_summary()->set_termination("preview");
-      out_ = Serialize(solved);
-    } catch (const std::exception& e) {
-      status = ToStatus(e);
-    }
-    lock.lock();
-    job_running_ = false;
-    if (!status.ok()) {
-      pending_.reset();
-      FinishLocked(lock, status);
-      return;
-    }
-    if (cancelled_ || refused_) {
-      FinishLocked(lock, refused_ ? *refused_ : StoppedStatus(*watch_, "the client cancelled the session"));
-      return;
-    }
-    if (preview && !pending_) {
-      previewed_ = std::move(request);
-      previewed_index_ = index;
-    } else if (preview) {
-      ++dropped_;  // overtaken while its preview was made: only the newer frame is solved
-    }
+    next->reset();
     writing_ = true;
     watch_->Waiting();
     lock.unlock();
     StartWrite(&out_);
+    lock.lock();
+  }
+
+  // After a job: store its answer, write, schedule more, or end the session.
+  void Finished(std::unique_lock<std::mutex>& lock, const grpc::Status& status, std::optional<Answer> answer,
+                bool solved) {
+    if (!status.ok()) {
+      Fail(lock, status);
+      return;
+    }
+    if (cancelled_ || refused_) {
+      FinishIfIdle(lock, refused_ ? *refused_ : StoppedStatus(*watch_, "the client cancelled the session"));
+      return;
+    }
+    if (answer) {
+      std::optional<Answer>& slot = solved ? outbox_solved_ : outbox_preview_;
+      if (!slot || slot->index < answer->index) slot = std::move(answer);
+    }
+    Flush(lock);
+    Schedule(lock);
+    FinishIfDone(lock);
+  }
+
+  // On a pool worker: the setup (first time), then the newest pending frame's solve.
+  void RunSolve() {
+    std::unique_lock lock(mutex_);
+    if (!ready_) {
+      lock.unlock();
+      grpc::Status status = Start();
+      lock.lock();
+      if (!status.ok()) {
+        solving_ = false;
+        Finished(lock, status, std::nullopt, true);
+        return;
+      }
+      ready_ = true;
+      Schedule(lock);  // a preview of the newest frame beside this solve
+    }
+    if (!pending_ || cancelled_ || refused_) {
+      solving_ = false;
+      Finished(lock, grpc::Status::OK, std::nullopt, true);
+      return;
+    }
+    Job job = std::move(*pending_);
+    pending_.reset();
+    lock.unlock();
+    grpc::Status status;
+    std::optional<Answer> answer;
+    try {
+      const Frame frame = ToFrame(job.frame, *entry_->rig, colliders_, job.index, context_.limits);
+      Points positions;
+      const SolveSummary summary = solver_->Solve(frame, &positions);
+      context_.metrics.CountFrame(summary.solve_ms / 1000.0, summary.newton_iterations, summary.converged());
+      CheckSolved(positions, job.index);
+      answer = Answer{Serialize(ToProto(static_cast<int>(job.index), positions, entry_->rig->rest().faces, summary,
+                                        job_.with_normals, context_.replica_name)),
+                      job.index};
+    } catch (const std::exception& e) {
+      status = ToStatus(e);
+    }
+    lock.lock();
+    solving_ = false;
+    // The solve covers its frame: a preview not yet made for it (or an older one) is not needed.
+    if (to_preview_ && to_preview_->index <= job.index) to_preview_.reset();
+    Finished(lock, status, std::move(answer), true);
+  }
+
+  // On a pool worker: the newest frame's preview, the rig's prediction for its weights (Solver::Start reads
+  // only the rig and the options, so it may run beside the session's solve).
+  void RunPreview() {
+    std::unique_lock lock(mutex_);
+    if (!to_preview_ || cancelled_ || refused_) {
+      previewing_ = false;
+      Finished(lock, grpc::Status::OK, std::nullopt, false);
+      return;
+    }
+    Job job = std::move(*to_preview_);
+    to_preview_.reset();
+    lock.unlock();
+    grpc::Status status;
+    std::optional<Answer> answer;
+    try {
+      const auto start = std::chrono::steady_clock::now();
+      const Frame frame = ToFrame(job.frame, *entry_->rig, colliders_, job.index, context_.limits);
+      const Points positions = solver_->Start(frame.weights).topRows(entry_->rig->num_surface_vertices());
+      CheckSolved(positions, job.index);
+      SolveSummary summary;
+      summary.termination = Termination::kMaxIterations;
+      summary.message = "preview: the rig's prediction for these weights (colliders and pins not yet solved)";
+      summary.solve_ms = std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - start).count();
+      v1::SolvedFrame preview = ToProto(static_cast<int>(job.index), positions, entry_->rig->rest().faces, summary,
+                                        job_.with_normals, context_.replica_name);
+      preview.mutable_summary()->set_termination("preview");
+      answer = Answer{Serialize(preview), job.index};
+    } catch (const std::exception& e) {
+      status = ToStatus(e);
+    }
+    lock.lock();
+    previewing_ = false;
+    Finished(lock, status, std::move(answer), false);
   }
 
   grpc::Status Start() {
@@ -603,15 +702,17 @@ class InteractiveReactor final : public grpc::ServerBidiReactor<grpc::ByteBuffer
   size_t colliders_ = 0;
   std::unique_ptr<Solver> solver_;
   grpc::ByteBuffer out_;
-  std::optional<v1::FrameRequest> pending_;
-  std::optional<v1::FrameRequest> previewed_;  // a frame whose preview was sent and whose solve is due
-  std::uint32_t previewed_index_ = 0;
-  bool previews_ = false;                      // InteractiveStart.previews
-  std::optional<grpc::Status> refused_;  // a bad message arrived while a job ran or a write was in flight
-  std::uint32_t pending_index_ = 0, received_ = 0, dropped_ = 0;
+  std::optional<Job> pending_;     // the newest frame not yet taken by a solve
+  std::optional<Job> to_preview_;  // the newest frame not yet previewed (previews only)
+  std::optional<Answer> outbox_preview_, outbox_solved_;  // answers waiting for the write in flight
+  std::uint32_t sent_index_ = 0;                          // the newest frame index written so far
+  bool sent_any_ = false, sent_solved_ = false;           // and whether its solve was
+  bool previews_ = false;                                 // InteractiveStart.previews
+  std::optional<grpc::Status> refused_;  // a bad message or a failed job: the session ends with it
+  std::uint32_t received_ = 0, dropped_ = 0;
   std::mutex mutex_;  // guards the session's state below and above
-  bool started_ = false, setup_requested_ = false, job_running_ = false, writing_ = false, reads_done_ = false,
-       cancelled_ = false, finished_ = false;
+  bool started_ = false, setup_requested_ = false, ready_ = false, solving_ = false, previewing_ = false,
+       writing_ = false, reads_done_ = false, cancelled_ = false, finished_ = false;
 };
 
 }  // namespace
