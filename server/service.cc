@@ -4,6 +4,7 @@
 #include <grpcpp/support/proto_buffer_reader.h>
 #include <spdlog/spdlog.h>
 
+#include <atomic>
 #include <chrono>
 #include <map>
 #include <mutex>
@@ -276,12 +277,20 @@ class SolveReactor final : public grpc::ServerWriteReactor<grpc::ByteBuffer> {
       try {
         std::unique_ptr<Solver> solver = TakeSolver();
         Points positions;
-        const SolveSummary summary = solver->Solve(job_.frames[i], &positions);
+        // A cancelled or expired stream stops its frames within a Newton iteration.
+        const SolveSummary summary =
+            solver->Solve(job_.frames[i], &positions, [this] { return call_->IsCancelled() || Expired(); });
         ReturnSolver(std::move(solver));
-        context_.metrics.CountFrame(summary.solve_ms / 1000.0, summary.newton_iterations, summary.converged());
-        CheckSolved(positions, i);
-        bytes = Serialize(ToProto(static_cast<int>(i), positions, entry_->rig->rest().faces, summary,
-                                  job_.with_normals, context_.replica_name));
+        if (summary.termination == Termination::kCancelled) {
+          error = Expired() ? DeadlineExceeded(fmt::format("deadline passed during frame {} of {}", i,
+                                                           job_.frames.size()))
+                            : StoppedStatus(*watch_, "the client cancelled the stream");
+        } else {
+          context_.metrics.CountFrame(summary.solve_ms / 1000.0, summary.newton_iterations, summary.converged());
+          CheckSolved(positions, i);
+          bytes = Serialize(ToProto(static_cast<int>(i), positions, entry_->rig->rest().faces, summary,
+                                    job_.with_normals, context_.replica_name));
+        }
       } catch (const std::exception& e) {
         error = ToStatus(e);
       }
@@ -415,6 +424,7 @@ class InteractiveReactor final : public grpc::ServerBidiReactor<grpc::ByteBuffer
     } else if (incoming_.has_frame()) {
       if (pending_) ++dropped_;
       const std::uint32_t index = received_++;
+      newest_.store(index, std::memory_order_relaxed);
       if (previews_) to_preview_ = Job{*incoming_.mutable_frame(), index};
       pending_ = Job{std::move(*incoming_.mutable_frame()), index};
     } else {
@@ -619,12 +629,18 @@ class InteractiveReactor final : public grpc::ServerBidiReactor<grpc::ByteBuffer
     try {
       const Frame frame = ToFrame(job.frame, *entry_->rig, colliders_, job.index, context_.limits);
       Points positions;
-      const SolveSummary summary = solver_->Solve(frame, &positions);
-      context_.metrics.CountFrame(summary.solve_ms / 1000.0, summary.newton_iterations, summary.converged());
-      CheckSolved(positions, job.index);
-      answer = Answer{Serialize(ToProto(static_cast<int>(job.index), positions, entry_->rig->rest().faces, summary,
-                                        job_.with_normals, context_.replica_name)),
-                      job.index};
+      // Stop when the session is cancelled, and, with previews (the client has something to show), when a
+      // newer frame overtakes this one: its solve starts at once instead of after this one.
+      const SolveSummary summary = solver_->Solve(frame, &positions, [this, &job] {
+        return call_->IsCancelled() || (previews_ && newest_.load(std::memory_order_relaxed) > job.index);
+      });
+      if (summary.termination != Termination::kCancelled) {
+        context_.metrics.CountFrame(summary.solve_ms / 1000.0, summary.newton_iterations, summary.converged());
+        CheckSolved(positions, job.index);
+        answer = Answer{Serialize(ToProto(static_cast<int>(job.index), positions, entry_->rig->rest().faces,
+                                          summary, job_.with_normals, context_.replica_name)),
+                        job.index};
+      }
     } catch (const std::exception& e) {
       status = ToStatus(e);
     }
@@ -710,6 +726,7 @@ class InteractiveReactor final : public grpc::ServerBidiReactor<grpc::ByteBuffer
   bool previews_ = false;                                 // InteractiveStart.previews
   std::optional<grpc::Status> refused_;  // a bad message or a failed job: the session ends with it
   std::uint32_t received_ = 0, dropped_ = 0;
+  std::atomic<std::uint32_t> newest_{0};  // the newest frame's index, read by a running solve's stop check
   std::mutex mutex_;  // guards the session's state below and above
   bool started_ = false, setup_requested_ = false, ready_ = false, solving_ = false, previewing_ = false,
        writing_ = false, reads_done_ = false, cancelled_ = false, finished_ = false;

@@ -27,6 +27,7 @@ const char* ToString(Termination termination) {
     case Termination::kStalled: return "stalled";
     case Termination::kNumericalFailure: return "numerical_failure";
     case Termination::kLinear: return "linear";
+    case Termination::kCancelled: return "cancelled";
   }
   return "unknown";
 }

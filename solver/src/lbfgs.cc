@@ -59,6 +59,11 @@ void Lbfgs::Minimize(const MinimizerProblem& problem, Eigen::VectorXd* x_ptr, Mi
       summary->termination = MinimizerTermination::kConverged;
       break;
     }
+    if (problem.Stopped()) {
+      summary->termination = MinimizerTermination::kCancelled;
+      summary->message = "cancelled";
+      break;
+    }
     if (summary->iterations >= options_.max_iterations) {
       summary->termination = MinimizerTermination::kMaxIterations;
       summary->message = fmt::format("no convergence in {} iterations", options_.max_iterations);

@@ -6,6 +6,7 @@
 #include <Eigen/Core>
 #include <algorithm>
 #include <chrono>
+#include <functional>
 #include <cmath>
 #include <memory>
 #include <string>
@@ -50,7 +51,7 @@ struct MinimizerOptions {
   int lbfgs_max_iterations = 100;    // before Newton takes over
 };
 
-enum class MinimizerTermination { kConverged, kMaxIterations, kStalled, kNumericalFailure };
+enum class MinimizerTermination { kConverged, kMaxIterations, kStalled, kNumericalFailure, kCancelled };
 
 // Counts add up over calls (a frame's contact rounds); the termination and message are the last call's.
 struct MinimizerSummary {
@@ -103,6 +104,9 @@ struct MinimizerProblem {
   double mean_rest_length = 1.0;
   LaplacianPreconditioner* laplacian = nullptr;  // for the methods that use it
   MinimizerTiming* timing = nullptr;              // never null
+  const std::function<bool()>* stop = nullptr;    // asked once per iteration; true ends with kCancelled
+
+  bool Stopped() const { return stop != nullptr && *stop && (*stop)(); }
 };
 
 class Minimizer {

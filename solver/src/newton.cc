@@ -186,6 +186,11 @@ void InexactNewton::Minimize(const MinimizerProblem& problem, Eigen::VectorXd* x
       summary->termination = MinimizerTermination::kConverged;
       break;
     }
+    if (problem.Stopped()) {
+      summary->termination = MinimizerTermination::kCancelled;
+      summary->message = "cancelled";
+      break;
+    }
     if (iteration >= options_.max_iterations) {
       summary->termination = MinimizerTermination::kMaxIterations;
       summary->message = fmt::format("no convergence in {} Newton iterations", options_.max_iterations);

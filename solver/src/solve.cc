@@ -59,6 +59,7 @@ Termination ToTermination(internal::MinimizerTermination t) {
     case internal::MinimizerTermination::kMaxIterations: return Termination::kMaxIterations;
     case internal::MinimizerTermination::kStalled: return Termination::kStalled;
     case internal::MinimizerTermination::kNumericalFailure: return Termination::kNumericalFailure;
+    case internal::MinimizerTermination::kCancelled: return Termination::kCancelled;
   }
   return Termination::kNumericalFailure;
 }
@@ -78,7 +79,7 @@ class Solver::Impl {
     held_.assign(3 * static_cast<size_t>(rig_->num_vertices()), 0);
   }
 
-  SolveSummary Solve(const Frame& frame, Points* positions);
+  SolveSummary Solve(const Frame& frame, Points* positions, const std::function<bool()>* stop);
   // The start for these shape weights (stacked 3n) from the linear blend of every simulated vertex.
   void StartOf(const Points& linear, const std::vector<double>& shape_weights,
                const std::optional<internal::AnchorMotion>& motion, Eigen::VectorXd* x) const {
@@ -135,6 +136,7 @@ class Solver::Impl {
     internal::MinimizerProblem problem;
     problem.laplacian = Laplacian();
     problem.timing = &timing_;
+    problem.stop = stop_;
     problem.springs = &springs_;
     problem.linear = &linear_;
     problem.held = &held_;
@@ -149,6 +151,7 @@ class Solver::Impl {
   std::unique_ptr<internal::Minimizer> minimizer_;
   std::unique_ptr<internal::LaplacianPreconditioner> laplacian_;
   internal::MinimizerTiming timing_;
+  const std::function<bool()>* stop_ = nullptr;  // this frame's stop check (Solve)
   internal::ContactSet contacts_;
   std::vector<Collider> colliders_;
   std::vector<char> held_, base_held_;  // held coordinates of this frame, and before contacts
@@ -156,8 +159,9 @@ class Solver::Impl {
   Points previous_;  // the last solution (all_positions)
 };
 
-SolveSummary Solver::Impl::Solve(const Frame& frame, Points* positions) {
+SolveSummary Solver::Impl::Solve(const Frame& frame, Points* positions, const std::function<bool()>* stop) {
   const auto start = std::chrono::steady_clock::now();
+  stop_ = stop;
   const Rig& rig = *rig_;
   SolveSummary summary;
   const int n = rig.num_vertices();
@@ -213,7 +217,7 @@ SolveSummary Solver::Impl::Solve(const Frame& frame, Points* positions) {
     if (!frame.collider_transforms.empty()) motions = frame.collider_transforms;
     const double offset = options_.contact_offset * diagonal;
     const internal::Curvature curvature{1.0, options_.hessian == HessianMode::kAbsolute};
-    while (true) {
+    while (minimized.termination != internal::MinimizerTermination::kCancelled) {
       springs_.Evaluate(x_, held_, curvature);
       if (!contacts_.Update(colliders_, motions, springs_.reaction(), rig.num_surface_vertices(), offset,
                             10.0 * options_.residual_tolerance, base_held_, &x_, &held_)) {
@@ -269,7 +273,10 @@ Solver::~Solver() = default;
 Solver::Solver(Solver&&) noexcept = default;
 Solver& Solver::operator=(Solver&&) noexcept = default;
 
-SolveSummary Solver::Solve(const Frame& frame, Points* positions) { return impl_->Solve(frame, positions); }
+SolveSummary Solver::Solve(const Frame& frame, Points* positions) { return impl_->Solve(frame, positions, nullptr); }
+SolveSummary Solver::Solve(const Frame& frame, Points* positions, const std::function<bool()>& stop) {
+  return impl_->Solve(frame, positions, &stop);
+}
 Points Solver::Start(const std::vector<double>& weights) const {
   const Rig& rig = *impl_->rig_;
   const Points linear = LinearBlendAll(rig, weights);

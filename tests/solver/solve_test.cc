@@ -223,6 +223,26 @@ TEST(Blend, IterationCapIsReportedNotHidden) {
   EXPECT_THAT(s.message, HasSubstr("1 Newton iterations"));
 }
 
+// A stop check ends the frame at the next iteration (a server's cancelled request or overtaken slider frame);
+// the same Solver then solves the next frame to the end.
+TEST(Blend, AStopCheckEndsTheFrameAtTheNextIteration) {
+  auto rig = LoadRig("cylinder/cylinder.obj", {"cylinder/poses-2_cylinder-1.obj"});
+  SolveOptions options;
+  options.use_target_paths = false;  // from the linear blend: several iterations to go
+  Solver solver(rig, options);
+  Points x;
+  int asked = 0;
+  const SolveSummary stopped = solver.Solve({{0.5}}, &x, [&] { return ++asked > 1; });
+  EXPECT_EQ(stopped.termination, Termination::kCancelled);
+  EXPECT_STREQ(ToString(stopped.termination), "cancelled");
+  EXPECT_FALSE(stopped.converged());
+  EXPECT_EQ(stopped.newton_iterations, 1);
+  EXPECT_EQ(asked, 2);
+  const SolveSummary full = solver.Solve({{0.5}}, &x, [] { return false; });
+  EXPECT_TRUE(full.converged()) << full.message;
+  EXPECT_GT(full.newton_iterations, 1);
+}
+
 TEST(Blend, SolversOnTwoThreadsShareOneRig) {
   auto rig = LoadRig("cylinder/cylinder.obj",
                      {"cylinder/poses-2_cylinder-1.obj", "cylinder/poses-2_cylinder-2.obj"});

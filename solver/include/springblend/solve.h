@@ -7,6 +7,7 @@
 #pragma once
 
 #include <chrono>
+#include <functional>
 #include <memory>
 #include <string>
 #include <vector>
@@ -113,6 +114,7 @@ enum class Termination {
   kStalled,        // the line search could not lower the energy any more before the residual got small
   kNumericalFailure,  // a factorization failed or a value became non-finite; positions are the start
   kLinear,         // linear blendshape requested: no solve
+  kCancelled,      // the stop check (Solver::Solve's `stop`) said stop; positions are the last iterate
 };
 const char* ToString(Termination termination);
 
@@ -172,6 +174,10 @@ class Solver {
   // Solves one frame and writes the surface positions (#surface vertices by 3) to *positions. Bad input
   // throws Error; a solve that does not converge returns a summary that says why.
   SolveSummary Solve(const Frame& frame, Points* positions);
+  // The same, asking `stop` once per Newton (or L-BFGS) iteration and contact round; when it says true the
+  // frame ends at once with Termination::kCancelled (a server stops the work of a cancelled request, or of a
+  // slider frame a newer one overtook). `stop` is called on this thread.
+  SolveSummary Solve(const Frame& frame, Points* positions, const std::function<bool()>& stop);
 
   // Where a frame with these weights starts (#rig vertices by 3, before its held vertices are placed).
   Points Start(const std::vector<double>& weights) const;
