@@ -79,19 +79,54 @@ std::unique_ptr<grpc::ClientContext> Client::Context(const std::string& characte
 
 v1::Character Client::Upload(const TriangleMesh& rest, const std::vector<TriangleMesh>& targets,
                              const v1::BuildOptions& options, const std::string& name) {
-  // Only the rest mesh's faces travel; every target must share them, so check that here.
-  for (const auto& t : targets) {
-    if (t.faces.rows() != rest.faces.rows()) {
+  std::vector<RigTarget> plain(targets.size());
+  for (size_t t = 0; t < targets.size(); ++t) plain[t].mesh = targets[t];
+  return Upload(rest, plain, options, name);
+}
+
+namespace {
+
+// Only the rest mesh's faces travel; every shape must share them and the vertex count, so check that here.
+void CheckTopology(const TriangleMesh& rest, const TriangleMesh& shape) {
+  if (shape.vertices.rows() != rest.vertices.rows()) {
+    throw ClientError(grpc::StatusCode::INVALID_ARGUMENT,
+                      fmt::format("{}: {} vertices, but the rest mesh has {}", shape.source, shape.vertices.rows(),
+                                  rest.vertices.rows()));
+  }
+  if (shape.faces.rows() != rest.faces.rows()) {
+    throw ClientError(grpc::StatusCode::INVALID_ARGUMENT,
+                      fmt::format("{}: {} faces, but the rest mesh has {}", shape.source, shape.faces.rows(), rest.faces.rows()));
+  }
+  for (Eigen::Index f = 0; f < rest.faces.rows(); ++f) {
+    if (shape.faces.row(f) != rest.faces.row(f)) {
       throw ClientError(grpc::StatusCode::INVALID_ARGUMENT,
-                        fmt::format("{}: {} faces, but the rest mesh has {}", t.source, t.faces.rows(), rest.faces.rows()));
+                        fmt::format("{}: face {} differs from the rest mesh's; every target must have the rest "
+                                    "mesh's faces",
+                                    shape.source, f));
     }
-    for (Eigen::Index f = 0; f < rest.faces.rows(); ++f) {
-      if (t.faces.row(f) != rest.faces.row(f)) {
-        throw ClientError(grpc::StatusCode::INVALID_ARGUMENT,
-                          fmt::format("{}: face {} differs from the rest mesh's; every target must have the rest "
-                                      "mesh's faces",
-                                      t.source, f));
-      }
+  }
+}
+
+}  // namespace
+
+v1::Character Client::Upload(const TriangleMesh& rest, const std::vector<RigTarget>& targets,
+                             const v1::BuildOptions& options, const std::string& name) {
+  std::vector<const TriangleMesh*> shapes = {&rest};  // the POSITIONS arrays, in the proto's shape order
+  bool production = false;
+  for (const auto& t : targets) {
+    CheckTopology(rest, t.mesh);
+    shapes.push_back(&t.mesh);
+    production = production || !t.inbetweens.empty() || !t.mask.empty() || !t.combination.empty();
+    if (!t.mask.empty() && t.mask.size() != static_cast<size_t>(rest.vertices.rows())) {
+      throw ClientError(grpc::StatusCode::INVALID_ARGUMENT,
+                        fmt::format("target '{}': mask has {} values, but the rest mesh has {} vertices", t.mesh.name,
+                                    t.mask.size(), rest.vertices.rows()));
+    }
+  }
+  for (const auto& t : targets) {
+    for (const auto& b : t.inbetweens) {
+      CheckTopology(rest, b.mesh);
+      shapes.push_back(&b.mesh);
     }
   }
   auto context = Context();
@@ -102,7 +137,14 @@ v1::Character Client::Upload(const TriangleMesh& rest, const std::vector<Triangl
   h->set_name(name);
   h->set_vertex_count(static_cast<std::uint32_t>(rest.vertices.rows()));
   h->set_face_count(static_cast<std::uint32_t>(rest.faces.rows()));
-  for (const auto& t : targets) h->add_target_names(t.name);
+  for (const auto& t : targets) {
+    h->add_target_names(t.mesh.name);
+    if (!production) continue;
+    v1::TargetRig* rig = h->add_targets();
+    for (const auto& b : t.inbetweens) rig->add_inbetween_weights(b.weight);
+    rig->set_has_mask(!t.mask.empty());
+    for (const auto& driver : t.combination) rig->add_combination(driver);
+  }
   *h->mutable_options() = options;
   bool ok = writer->Write(header);
   auto send = [&](v1::MeshPiece::Kind kind, std::uint32_t shape, const char* data, size_t elements, size_t size) {
@@ -120,15 +162,14 @@ v1::Character Client::Upload(const TriangleMesh& rest, const std::vector<Triangl
   };
   send(v1::MeshPiece::FACES, 0, reinterpret_cast<const char*>(rest.faces.data()),
        static_cast<size_t>(rest.faces.rows()), 12);
-  std::vector<const TriangleMesh*> shapes = {&rest};
-  for (const auto& t : targets) shapes.push_back(&t);
   for (size_t s = 0; s < shapes.size(); ++s) {
-    if (shapes[s]->vertices.rows() != rest.vertices.rows()) {
-      throw ClientError(grpc::StatusCode::INVALID_ARGUMENT,
-                        shapes[s]->source + ": its vertex count differs from the rest mesh's");
-    }
     send(v1::MeshPiece::POSITIONS, static_cast<std::uint32_t>(s),
          reinterpret_cast<const char*>(shapes[s]->vertices.data()), static_cast<size_t>(rest.vertices.rows()), 24);
+  }
+  for (size_t t = 0; t < targets.size(); ++t) {
+    if (targets[t].mask.empty()) continue;
+    send(v1::MeshPiece::MASK, static_cast<std::uint32_t>(t), reinterpret_cast<const char*>(targets[t].mask.data()),
+         targets[t].mask.size(), 8);
   }
   writer->WritesDone();
   Check(writer->Finish());

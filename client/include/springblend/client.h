@@ -49,6 +49,20 @@ struct ClientOptions {
 // packed arrays: nothing to format or parse. Throws ClientError(INVALID_ARGUMENT) on an empty mesh.
 v1::Collider MeshCollider(const Points& vertices, const Faces& triangles);
 
+// One target of a production rig (README: rig files), as plain arrays: a plug-in needs none of the solver's
+// libraries to describe one. Weights blend piecewise linearly through the in-betweens; a combination's weight
+// is the product of its drivers'; a mask scales the target's change per vertex.
+struct RigTarget {
+  TriangleMesh mesh;  // mesh.name is the target's name; a combination's: the sculpt with every driver at 1
+  struct Inbetween {
+    double weight = 0.0;  // in (0, 1), distinct per target
+    TriangleMesh mesh;
+  };
+  std::vector<Inbetween> inbetweens;
+  std::vector<double> mask;              // empty, or one weight per rest-mesh vertex
+  std::vector<std::string> combination;  // the drivers' names (>= 2 targets that are not combinations)
+};
+
 // The metadata header that names the character of a call, so a load balancer can route by it.
 inline constexpr char kCharacterHeader[] = "x-springblend-character";
 
@@ -77,6 +91,10 @@ class Client {
 
   // Uploads the rest mesh and targets (same vertex count and faces) in pieces.
   v1::Character Upload(const TriangleMesh& rest, const std::vector<TriangleMesh>& targets,
+                       const v1::BuildOptions& options = {}, const std::string& name = "");
+  // A production rig: in-betweens, masks and combinations travel with the meshes (TargetRig in the proto).
+  // Solves then take one weight per target that is not a combination, in order.
+  v1::Character Upload(const TriangleMesh& rest, const std::vector<RigTarget>& targets,
                        const v1::BuildOptions& options = {}, const std::string& name = "");
   v1::Character Get(const std::string& id, bool with_faces = false);
   std::vector<v1::Character> List();
