@@ -23,6 +23,8 @@ namespace springblend::server {
 namespace {
 
 constexpr char kFileMagic[8] = {'S', 'B', 'C', 'H', 'A', 'R', '0', '1'};
+// After the shapes of a production rig (in-betweens, masks, combinations); plain characters end before it.
+constexpr char kRigMarker[8] = {'S', 'B', 'R', 'I', 'G', '0', '0', '1'};
 
 // Little-endian byte writer/reader for the canonical form (x86-64 and aarch64 are little-endian).
 class Writer {
@@ -67,6 +69,7 @@ class Reader {
     at_ += n;
   }
   bool Done() const { return at_ == in_.size(); }
+  size_t left() const { return in_.size() - at_; }
 
  private:
   void Need(size_t n) const {
@@ -106,6 +109,19 @@ std::string SerializeWithName(const CharacterData& d, const std::string& name) {
   const auto vertices = d.shapes.empty() ? 0 : d.shapes[0].rows();
   w.Put<std::uint32_t>(static_cast<std::uint32_t>(vertices));
   for (const auto& s : d.shapes) w.PutBytes(s.data(), sizeof(double) * static_cast<size_t>(s.size()));
+  if (d.target_rigs.empty()) return w.Take();  // a plain character: the bytes (and id) it always had
+  w.PutBytes(kRigMarker, sizeof(kRigMarker));
+  for (const TargetRigData& t : d.target_rigs) {
+    w.Put<std::uint32_t>(static_cast<std::uint32_t>(t.inbetween_weights.size()));
+    for (size_t i = 0; i < t.inbetween_weights.size(); ++i) {
+      w.Put<double>(t.inbetween_weights[i]);
+      w.PutBytes(t.inbetweens[i].data(), sizeof(double) * static_cast<size_t>(t.inbetweens[i].size()));
+    }
+    w.Put<std::uint8_t>(t.mask.empty() ? 0 : 1);
+    w.PutBytes(t.mask.data(), sizeof(double) * t.mask.size());
+    w.Put<std::uint32_t>(static_cast<std::uint32_t>(t.combination.size()));
+    for (const auto& driver : t.combination) w.PutString(driver);
+  }
   return w.Take();
 }
 
@@ -170,6 +186,32 @@ CharacterData Deserialize(const std::string& bytes) {
     Points p(vertices, 3);
     r.GetBytes(p.data(), sizeof(double) * 3 * static_cast<size_t>(vertices));
     d.shapes.push_back(std::move(p));
+  }
+  if (!r.Done()) {
+    char marker[sizeof(kRigMarker)];
+    r.GetBytes(marker, sizeof(marker));
+    if (std::memcmp(marker, kRigMarker, sizeof(marker)) != 0) throw Error(ErrorCode::kInvalidInput, "character data has trailing bytes");
+    for (std::uint32_t t = 0; t < targets; ++t) {
+      TargetRigData rig;
+      const auto inbetweens = r.Get<std::uint32_t>();
+      if (static_cast<size_t>(inbetweens) * (8 + 24 * static_cast<size_t>(vertices)) > r.left()) {
+        throw Error(ErrorCode::kInvalidInput, "character data: bad in-between count");
+      }
+      for (std::uint32_t i = 0; i < inbetweens; ++i) {
+        rig.inbetween_weights.push_back(r.Get<double>());
+        Points p(vertices, 3);
+        r.GetBytes(p.data(), sizeof(double) * 3 * static_cast<size_t>(vertices));
+        rig.inbetweens.push_back(std::move(p));
+      }
+      if (r.Get<std::uint8_t>() != 0) {
+        rig.mask.resize(vertices);
+        r.GetBytes(rig.mask.data(), sizeof(double) * static_cast<size_t>(vertices));
+      }
+      const auto drivers = r.Get<std::uint32_t>();
+      if (drivers > r.left()) throw Error(ErrorCode::kInvalidInput, "character data: bad combination count");
+      for (std::uint32_t i = 0; i < drivers; ++i) rig.combination.push_back(r.GetString());
+      d.target_rigs.push_back(std::move(rig));
+    }
   }
   if (!r.Done()) throw Error(ErrorCode::kInvalidInput, "character data has trailing bytes");
   return d;
@@ -315,19 +357,41 @@ std::shared_ptr<const CharacterStore::Entry> CharacterStore::Build(const std::st
   rest.source = data.name.empty() ? "rest mesh" : data.name + ": rest mesh";
   rest.vertices = data.shapes[0];
   rest.faces = data.faces;
-  std::vector<TriangleMesh> targets;
-  for (size_t t = 0; t < data.target_names.size(); ++t) {
-    TriangleMesh target;
-    target.name = data.target_names[t];
-    target.source = fmt::format("target '{}'", data.target_names[t]);
-    target.vertices = data.shapes[t + 1];
-    target.faces = data.faces;
-    targets.push_back(std::move(target));
-  }
+  const auto shape = [&](const Points& vertices, const std::string& name, const std::string& source) {
+    TriangleMesh mesh;
+    mesh.name = name;
+    mesh.source = source;
+    mesh.vertices = vertices;
+    mesh.faces = data.faces;
+    return mesh;
+  };
   auto entry = std::make_shared<Entry>();
   entry->id = id;
   entry->name = data.name;
-  entry->rig = Rig::Build(std::move(rest), std::move(targets), data.options);
+  if (data.target_rigs.empty()) {
+    std::vector<TriangleMesh> targets;
+    for (size_t t = 0; t < data.target_names.size(); ++t) {
+      targets.push_back(shape(data.shapes[t + 1], data.target_names[t], fmt::format("target '{}'", data.target_names[t])));
+    }
+    entry->rig = Rig::Build(std::move(rest), std::move(targets), data.options);
+  } else {
+    std::vector<TargetSpec> targets;
+    for (size_t t = 0; t < data.target_names.size(); ++t) {
+      const std::string& name = data.target_names[t];
+      const TargetRigData& rig = data.target_rigs[t];
+      TargetSpec spec;
+      spec.name = name;
+      spec.mesh = shape(data.shapes[t + 1], name, fmt::format("target '{}'", name));
+      for (size_t i = 0; i < rig.inbetweens.size(); ++i) {
+        spec.inbetweens.push_back({rig.inbetween_weights[i],
+                                   shape(rig.inbetweens[i], name, fmt::format("target '{}': inbetweens[{}]", name, i))});
+      }
+      spec.mask = rig.mask;
+      spec.combination = rig.combination;
+      targets.push_back(std::move(spec));
+    }
+    entry->rig = Rig::Build(std::move(rest), std::move(targets), data.options);
+  }
   entry->bytes = EstimateBytes(*entry->rig);
   return entry;
 }

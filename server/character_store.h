@@ -18,13 +18,24 @@
 
 namespace springblend::server {
 
+// The production-rig parts of one target (proto TargetRig): in-betweens, mask, combination drivers.
+struct TargetRigData {
+  std::vector<double> inbetween_weights;
+  std::vector<Points> inbetweens;  // one per weight, the rest mesh's vertex count
+  std::vector<double> mask;        // empty, or one per vertex
+  std::vector<std::string> combination;
+};
+
 // Everything that defines a character: the meshes and the build options.
 struct CharacterData {
   std::string name;  // a label, not part of the id
-  std::vector<std::string> target_names;
+  std::vector<std::string> target_names;  // every target, combinations included
   Faces faces;
   std::vector<Points> shapes;  // rest, then one per target
   RigOptions options;
+  // Empty (every target plain: the id is what it was before production rigs), or one per target. In-betweens,
+  // masks and combinations are part of the canonical bytes, so they change the id.
+  std::vector<TargetRigData> target_rigs;
 };
 
 // The canonical bytes of a character (what is hashed and stored) and back.

@@ -3,6 +3,7 @@
 #include <fmt/format.h>
 
 #include <Eigen/Geometry>
+#include <algorithm>
 #include <cmath>
 #include <cstring>
 #include <iterator>
@@ -125,7 +126,21 @@ void UploadAssembler::Add(v1::UploadChunk& chunk) {
     if (h.target_names_size() > limits_.max_targets) {
       Fail(fmt::format("{} targets is over the limit of {}", h.target_names_size(), limits_.max_targets), true);
     }
-    const std::int64_t expected = 12LL * h.face_count() + 24LL * h.vertex_count() * (h.target_names_size() + 1);
+    if (h.targets_size() != 0 && h.targets_size() != h.target_names_size()) {
+      Fail(fmt::format("header.targets has {} entries: send none, or one per target_names entry ({})", h.targets_size(),
+                       h.target_names_size()));
+    }
+    size_t inbetweens = 0, masks = 0;
+    for (const v1::TargetRig& t : h.targets()) {
+      inbetweens += static_cast<size_t>(t.inbetween_weights_size());
+      masks += t.has_mask() ? 1 : 0;
+    }
+    if (inbetweens > static_cast<size_t>(limits_.max_targets)) {
+      Fail(fmt::format("{} in-betweens is over the limit of {}", inbetweens, limits_.max_targets), true);
+    }
+    const std::int64_t expected = 12LL * h.face_count() +
+                                  24LL * h.vertex_count() * (h.target_names_size() + 1 + static_cast<std::int64_t>(inbetweens)) +
+                                  8LL * h.vertex_count() * static_cast<std::int64_t>(masks);
     if (expected > limits_.max_upload_bytes) {
       Fail(fmt::format("the character needs {} bytes, over the limit of {} (--max-upload-bytes)", expected, limits_.max_upload_bytes), true);
     }
@@ -139,6 +154,23 @@ void UploadAssembler::Add(v1::UploadChunk& chunk) {
       }
       if (!names.insert(name).second) Fail(fmt::format("header.target_names[{}] '{}' is used twice", t, Printable(name)));
       data_.target_names.push_back(name);
+    }
+    // The rig's own rules (weights in (0, 1), drivers that exist) are the solver's to check, naming the target.
+    for (int t = 0; t < h.targets_size(); ++t) {
+      const v1::TargetRig& in = h.targets(t);
+      TargetRigData rig;
+      rig.inbetween_weights.assign(in.inbetween_weights().begin(), in.inbetween_weights().end());
+      for (int d = 0; d < in.combination_size(); ++d) {
+        if (in.combination(d).size() > limits_.max_name_bytes) {
+          Fail(fmt::format("header.targets[{}].combination[{}] is over {} bytes", t, d, limits_.max_name_bytes));
+        }
+        rig.combination.push_back(in.combination(d));
+      }
+      if (in.combination_size() > h.target_names_size()) {
+        Fail(fmt::format("header.targets[{}].combination has more drivers than there are targets", t));
+      }
+      if (in.has_mask()) mask_owner_.push_back(static_cast<std::uint32_t>(t));
+      data_.target_rigs.push_back(std::move(rig));
     }
     data_.name = h.name();
     const v1::BuildOptions& o = h.options();
@@ -155,7 +187,8 @@ void UploadAssembler::Add(v1::UploadChunk& chunk) {
     data_.options.Validate();
     vertex_count_ = h.vertex_count();
     face_count_ = h.face_count();
-    covered_.assign(static_cast<size_t>(h.target_names_size()) + 2, {});
+    shapes_ = static_cast<size_t>(h.target_names_size()) + 1 + inbetweens;
+    covered_.assign(1 + shapes_ + mask_owner_.size(), {});
     have_header_ = true;
     return;
   }
@@ -170,18 +203,27 @@ void UploadAssembler::Add(v1::UploadChunk& chunk) {
     element_bytes = 12;
     elements = face_count_;
   } else if (p.kind() == v1::MeshPiece::POSITIONS) {
-    if (p.shape() >= covered_.size() - 1) {
-      Fail(fmt::format("piece.shape = {} but there are {} shapes (rest + targets)", p.shape(), covered_.size() - 1));
+    if (p.shape() >= shapes_) {
+      Fail(fmt::format("piece.shape = {} but there are {} shapes (rest + targets + in-betweens)", p.shape(), shapes_));
     }
     array = p.shape() + 1;
     element_bytes = 24;
     elements = vertex_count_;
+  } else if (p.kind() == v1::MeshPiece::MASK) {
+    const auto owner = std::find(mask_owner_.begin(), mask_owner_.end(), p.shape());
+    if (owner == mask_owner_.end()) {
+      Fail(fmt::format("a MASK piece for target {}, which header.targets does not give a mask (has_mask)", p.shape()));
+    }
+    array = 1 + shapes_ + static_cast<size_t>(owner - mask_owner_.begin());
+    element_bytes = 8;
+    elements = vertex_count_;
   } else {
-    Fail("piece.kind must be FACES or POSITIONS");
+    Fail("piece.kind must be FACES, POSITIONS or MASK");
   }
   const size_t byte_count = p.data().size();
   if (byte_count % element_bytes != 0) {
-    Fail(fmt::format("a {} piece has {} bytes, not a multiple of {}", p.kind() == v1::MeshPiece::FACES ? "FACES" : "POSITIONS", byte_count, element_bytes));
+    Fail(fmt::format("a {} piece has {} bytes, not a multiple of {}", v1::MeshPiece::Kind_Name(p.kind()), byte_count,
+                     element_bytes));
   }
   const size_t count = byte_count / element_bytes;
   if (p.offset() > elements || count > elements - p.offset()) {
@@ -218,21 +260,39 @@ CharacterData UploadAssembler::Finish() {
     const auto& ranges = covered_[a];
     const size_t missing = ranges.empty() || ranges.begin()->first != 0 ? 0 : ranges.begin()->second;
     if (missing < elements) {
-      Fail(a == 0 ? fmt::format("the upload ended with face {} missing", missing)
-                  : fmt::format("the upload ended with vertex {} of shape {} missing", missing, a - 1));
+      Fail(a == 0         ? fmt::format("the upload ended with face {} missing", missing)
+           : a <= shapes_ ? fmt::format("the upload ended with vertex {} of shape {} missing", missing, a - 1)
+                          : fmt::format("the upload ended with value {} of target {}'s mask missing", missing,
+                                        mask_owner_[a - 1 - shapes_]));
     }
   }
   data_.faces.resize(face_count_, 3);
-  data_.shapes.assign(covered_.size() - 1, Points(vertex_count_, 3));
+  std::vector<Points> shapes(shapes_, Points(vertex_count_, 3));
+  std::vector<std::vector<double>> masks(mask_owner_.size(), std::vector<double>(vertex_count_));
   for (Piece& piece : pieces_) {
     // Row-major Eigen storage matches the wire's packed triples (both little-endian on our targets).
-    char* target = piece.array == 0 ? reinterpret_cast<char*>(data_.faces.data())
-                                    : reinterpret_cast<char*>(data_.shapes[piece.array - 1].data());
-    const size_t element_bytes = piece.array == 0 ? 12 : 24;
+    char* target = piece.array == 0         ? reinterpret_cast<char*>(data_.faces.data())
+                   : piece.array <= shapes_ ? reinterpret_cast<char*>(shapes[piece.array - 1].data())
+                                            : reinterpret_cast<char*>(masks[piece.array - 1 - shapes_].data());
+    const size_t element_bytes = piece.array == 0 ? 12 : piece.array <= shapes_ ? 24 : 8;
     std::memcpy(target + piece.offset * element_bytes, piece.bytes.data(), piece.bytes.size());
     std::string().swap(piece.bytes);
   }
   pieces_.clear();
+  // Shapes past the targets are the in-betweens, target by target.
+  const size_t targets = data_.target_names.size();
+  data_.shapes.assign(std::make_move_iterator(shapes.begin()), std::make_move_iterator(shapes.begin() + 1 + targets));
+  size_t next = 1 + targets;
+  for (TargetRigData& rig : data_.target_rigs) {
+    for (size_t i = 0; i < rig.inbetween_weights.size(); ++i) rig.inbetweens.push_back(std::move(shapes[next++]));
+  }
+  for (size_t k = 0; k < mask_owner_.size(); ++k) data_.target_rigs[mask_owner_[k]].mask = std::move(masks[k]);
+  // Every target plain: the same character (and id) as an upload without header.targets.
+  if (std::all_of(data_.target_rigs.begin(), data_.target_rigs.end(), [](const TargetRigData& t) {
+        return t.inbetween_weights.empty() && t.mask.empty() && t.combination.empty();
+      })) {
+    data_.target_rigs.clear();
+  }
   return std::move(data_);
 }
 
@@ -242,6 +302,7 @@ v1::Character ToProto(const CharacterStore::Entry& entry, bool cache_hit) {
   c.set_name(entry.name);
   c.set_cache_hit(cache_hit);
   for (const auto& t : entry.rig->target_names()) c.add_target_names(t);
+  for (const auto& t : entry.rig->combination_names()) c.add_combination_names(t);
   const RigSummary& s = entry.rig->summary();
   v1::RigSummary* out = c.mutable_summary();
   out->set_surface_vertices(s.surface_vertices);

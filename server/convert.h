@@ -54,8 +54,10 @@ class UploadAssembler {
   std::int64_t bytes_ = 0;
   CharacterData data_;
   std::uint32_t vertex_count_ = 0, face_count_ = 0;
+  size_t shapes_ = 0;                       // POSITIONS arrays: rest, targets, in-betweens
+  std::vector<std::uint32_t> mask_owner_;   // per MASK array, its target
   struct Piece {
-    size_t array;  // 0 faces, 1 + s shape s
+    size_t array;  // 0 faces, 1 + s shape s, then 1 + shapes_ + k the k-th mask
     size_t offset;
     std::string bytes;
   };

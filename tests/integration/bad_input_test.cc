@@ -198,6 +198,46 @@ class BadInputTest : public ::testing::Test {
       c.mutable_piece()->set_kind(static_cast<v1::MeshPiece::Kind>(42));
       u.extra.push_back(c);
     }, kInvalid, "piece.kind");
+    // Production rigs (header.targets, MASK pieces, in-betweens as further shapes).
+    const auto production = [](Upload& u) {
+      for (int t = 0; t < u.header.target_names_size(); ++t) u.header.add_targets();
+    };
+    const auto piece = [](Upload& u, v1::MeshPiece::Kind kind, std::uint32_t shape, size_t bytes) {
+      v1::UploadChunk c;
+      c.mutable_piece()->set_kind(kind);
+      c.mutable_piece()->set_shape(shape);
+      c.mutable_piece()->set_data(std::string(bytes, '\0'));
+      u.extra.push_back(c);
+    };
+    upload("header.targets of the wrong count", [](Upload& u) { u.header.add_targets(); }, kInvalid,
+           "header.targets has 1 entries");
+    upload("a MASK piece for a target without a mask", [&](Upload& u) {
+      production(u);
+      piece(u, v1::MeshPiece::MASK, 0, 8 * u.header.vertex_count());
+    }, kInvalid, "does not give a mask");
+    upload("a mask never sent", [&](Upload& u) {
+      production(u);
+      u.header.mutable_targets(1)->set_has_mask(true);
+    }, kInvalid, "value 0 of target 1's mask missing");
+    upload("a MASK piece of 7 bytes", [&](Upload& u) {
+      production(u);
+      u.header.mutable_targets(0)->set_has_mask(true);
+      piece(u, v1::MeshPiece::MASK, 0, 7);
+    }, kInvalid, "not a multiple of 8");
+    upload("an in-between never sent", [&](Upload& u) {
+      production(u);
+      u.header.mutable_targets(0)->add_inbetween_weights(0.5);
+    }, kInvalid, "of shape 3 missing");
+    upload("an in-between weight of 1.5", [&](Upload& u) {
+      production(u);
+      u.header.mutable_targets(0)->add_inbetween_weights(1.5);
+      u.shapes.push_back(u.shapes[1]);
+    }, kInvalid, "inbetweens[0].weight");
+    upload("a combination of an unknown target", [&](Upload& u) {
+      production(u);
+      u.header.mutable_targets(1)->add_combination(u.header.target_names(0));
+      u.header.mutable_targets(1)->add_combination("nobody");
+    }, kInvalid, "nobody");
     // The header's counts and names.
     upload("2 vertices", [](Upload& u) { u.header.set_vertex_count(2); }, kInvalid, "at least 3 vertices");
     upload("no faces", [](Upload& u) { u.header.set_face_count(0); }, kInvalid, "face_count = 0");
