@@ -14,6 +14,7 @@
 #include "frame_output.h"
 #include "scene.h"
 #include "collider_syntax.h"
+#include "rig_file.h"
 #include "springblend/error.h"
 #include "springblend/mesh.h"
 #include "springblend/rig.h"
@@ -23,6 +24,7 @@ namespace springblend::cli {
 namespace {
 
 struct BlendArgs {
+  std::string rig;
   std::string rest;
   std::vector<std::string> targets;
   std::vector<double> weights;
@@ -106,10 +108,21 @@ int RunBlend(const BlendArgs& args) {
   rig_options.linear_solver = LinearSolverTypeFromString(args.solver);
   rig_options.target_paths = !args.no_target_paths;
 
-  TriangleMesh rest = LoadMesh(args.rest);
-  std::vector<TriangleMesh> targets;
-  for (const auto& path : args.targets) targets.push_back(LoadMesh(path));
-  auto rig = Rig::Build(std::move(rest), std::move(targets), rig_options);
+  std::shared_ptr<const Rig> rig;
+  if (!args.rig.empty()) {
+    if (!args.rest.empty() || !args.targets.empty()) {
+      throw Error(ErrorCode::kInvalidInput, "--rig names the rest shape and the targets; drop --rest and --target");
+    }
+    rig = BuildRig(LoadRigFile(args.rig), rig_options);
+  } else {
+    if (args.rest.empty() || args.targets.empty()) {
+      throw Error(ErrorCode::kInvalidInput, "give --rest and at least one --target, or --rig RIG.json");
+    }
+    TriangleMesh rest = LoadMesh(args.rest);
+    std::vector<TriangleMesh> targets;
+    for (const auto& path : args.targets) targets.push_back(LoadMesh(path));
+    rig = Rig::Build(std::move(rest), std::move(targets), rig_options);
+  }
   if (args.verbose) std::cerr << RigJson(rig->summary()).dump() << "\n";
 
   SolveOptions options;
@@ -185,12 +198,15 @@ Runner AddBlendCommand(CLI::App& app) {
   CLI::App* cmd = app.add_subcommand(
       "blend", "solve blended shapes locally: the equilibrium of the mass-spring system whose rest "
                "lengths are blended with the weights");
-  cmd->add_option("--rest", args->rest, "rest shape (OBJ, PLY, OFF or STL)")->required();
-  cmd->add_option("--target", args->targets, "a blendshape target; repeat for more (order = weight order)")
-      ->required();
+  cmd->add_option("--rig", args->rig,
+                  "a rig file (JSON: rest, targets with in-betweens, masks and combinations; see README) instead "
+                  "of --rest and --target");
+  cmd->add_option("--rest", args->rest, "rest shape (OBJ, PLY, OFF or STL)");
+  cmd->add_option("--target", args->targets, "a blendshape target; repeat for more (order = weight order)");
   cmd->add_option("--weights", args->weights,
-                  "one weight per target, comma separated; the rest shape gets 1 - sum (default 1 for a "
-                  "single target). With --sweep: the end of the sweep")
+                  "one weight per target, comma separated (with --rig: per target that is not a combination, in "
+                  "file order); the rest shape gets 1 - sum (default 1 for a single target). With --sweep: the end "
+                  "of the sweep")
       ->delimiter(',');
   cmd->add_option("--out", args->out,
                   "output OBJ file, or directory with --sweep/--frames; a path ending in .pc2 writes every frame "

@@ -16,6 +16,7 @@
 #include "scene.h"
 #include "springblend/client.h"
 #include "collider_syntax.h"
+#include "rig_file.h"
 #include "springblend/error.h"
 
 namespace springblend::cli {
@@ -26,7 +27,7 @@ struct RemoteArgs {
   bool tls = false;
   std::string tls_ca, tls_cert, tls_key, tls_server_name, token;
   // upload
-  std::string rest, name;
+  std::string rig, rest, name;
   std::vector<std::string> targets;
   std::vector<int> fixed;
   bool no_interior = false, no_anchor = false, no_target_paths = false;
@@ -93,6 +94,7 @@ nlohmann::json CharacterJson(const v1::Character& c) {
           {"name", c.name()},
           {"cache_hit", c.cache_hit()},
           {"targets", std::vector<std::string>(c.target_names().begin(), c.target_names().end())},
+          {"combinations", std::vector<std::string>(c.combination_names().begin(), c.combination_names().end())},
           {"vertices", s.vertices()},
           {"surface_vertices", s.surface_vertices()},
           {"springs", s.springs()},
@@ -116,15 +118,33 @@ ClientOptions OptionsOf(const RemoteArgs& args) {
 
 int RunUpload(const RemoteArgs& args) {
   Client client(OptionsOf(args));
-  TriangleMesh rest = LoadMesh(args.rest);
-  std::vector<TriangleMesh> targets;
-  for (const auto& t : args.targets) targets.push_back(LoadMesh(t));
   v1::BuildOptions options;
   for (int v : args.fixed) options.add_fixed_vertices(static_cast<std::uint32_t>(v));
   options.set_no_interior(args.no_interior);
   options.set_no_anchor(args.no_anchor);
   options.set_no_target_paths(args.no_target_paths);
-  const v1::Character c = client.Upload(rest, targets, options, args.name.empty() ? rest.name : args.name);
+  v1::Character c;
+  if (!args.rig.empty()) {
+    if (!args.rest.empty() || !args.targets.empty()) {
+      throw Error(ErrorCode::kInvalidInput, "--rig names the rest shape and the targets; drop --rest and --target");
+    }
+    const RigFile rig = LoadRigFile(args.rig);
+    for (int v : rig.fixed_vertices) options.add_fixed_vertices(static_cast<std::uint32_t>(v));
+    try {
+      c = client.Upload(rig.rest, rig.targets, options, args.name.empty() ? rig.rest.name : args.name);
+    } catch (const ClientError& e) {
+      // The server's refusal names the target and the field; say which file they are in.
+      throw ClientError(e.code(), fmt::format("{}: {}", rig.path, e.what()));
+    }
+  } else {
+    if (args.rest.empty() || args.targets.empty()) {
+      throw Error(ErrorCode::kInvalidInput, "give --rest and at least one --target, or --rig RIG.json");
+    }
+    TriangleMesh rest = LoadMesh(args.rest);
+    std::vector<TriangleMesh> targets;
+    for (const auto& t : args.targets) targets.push_back(LoadMesh(t));
+    c = client.Upload(rest, targets, options, args.name.empty() ? rest.name : args.name);
+  }
   std::cout << CharacterJson(c).dump() << std::endl;
   return kExitOk;
 }
@@ -258,8 +278,9 @@ std::vector<std::pair<std::string, Runner>> AddServiceCommands(CLI::App& app) {
 
   CLI::App* upload = app.add_subcommand("upload", "upload a character; prints its id and rig summary as JSON");
   server_option(upload);
-  upload->add_option("--rest", args->rest, "rest shape")->required();
-  upload->add_option("--target", args->targets, "a target; repeat (order = weight order)")->required();
+  upload->add_option("--rig", args->rig, "a rig file (JSON, see README) instead of --rest and --target");
+  upload->add_option("--rest", args->rest, "rest shape");
+  upload->add_option("--target", args->targets, "a target; repeat (order = weight order)");
   upload->add_option("--name", args->name, "a label (default: the rest file's name)");
   upload->add_option("--fixed", args->fixed, "fixed vertices")->delimiter(',');
   upload->add_flag("--no-interior", args->no_interior, "surface springs only");
