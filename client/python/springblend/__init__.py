@@ -10,13 +10,14 @@ Put the build's python directory (build/release/python) on sys.path, then:
                                 colliders=[springblend.colliders.sphere((0, 1, 0), 0.3)])
         solution.positions  # #frames by #V by 3 float32
         solution.write_pc2("shot.pc2")  # a point cache for the DCC's Mesh Cache (frame = index + 1)
+        face = client.upload_rig("face/rig.json")  # in-betweens, masks, combinations (springblend.rigfile)
 """
 
-from springblend import colliders, pointcache
+from springblend import colliders, pointcache, rigfile
 from springblend._version import __version__
 from springblend._generated import pb
 from springblend.client import CHARACTER_HEADER, Client, InteractiveSession, Solution, SolvedFrame
 from springblend.errors import SpringblendError
 
 __all__ = ["CHARACTER_HEADER", "Client", "InteractiveSession", "Solution", "SolvedFrame", "SpringblendError",
-           "__version__", "colliders", "pb", "pointcache"]
+           "__version__", "colliders", "pb", "pointcache", "rigfile"]

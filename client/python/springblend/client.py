@@ -11,7 +11,7 @@ import typing
 import grpc
 import numpy as np
 
-from springblend import arrays, colliders as shapes, pointcache
+from springblend import arrays, colliders as shapes, pointcache, rigfile
 from springblend._generated import health_pb2, pb, pb_grpc
 from springblend.errors import SpringblendError, invalid_argument
 
@@ -117,12 +117,60 @@ class Client:
                                   no_target_paths=bool(no_target_paths))
         header = pb.UploadHeader(name=name, vertex_count=len(rest), face_count=len(faces),
                                  target_names=[str(n) for n in target_names], options=options)
+        return self._upload(header, faces, shapes_, {})
 
+    def upload_rig(self, rig, name="", fixed_vertices=(), **options):
+        """Uploads a production rig (springblend.rigfile.Rig, or the path of a rig file): targets with
+        in-betweens, masks and combinations. Solves then take one weight per target that is not a combination
+        (rig.weight_names). The server's refusals ("target 'jawOpen': inbetweens[1].weight ...") get the rig
+        file's path in front. options: static_tolerance, no_interior, no_anchor, bending_stiffness,
+        no_target_paths, as for upload."""
+        if isinstance(rig, (str, bytes)) or hasattr(rig, "__fspath__"):
+            rig = rigfile.load_rig(rig)
+        rest = arrays.as_points(rig.rest, "rest")
+        faces = arrays.as_faces(rig.faces, len(rest))
+        shapes_, inbetweens, masks, specs = [rest], [], {}, []
+        for index, target in enumerate(rig.targets):
+            where = f"{rig.path}: target '{target.name}'"
+            shapes_.append(self._same_shape(target.positions, rest, f"{where}: mesh"))
+            spec = pb.TargetRig(combination=[str(d) for d in target.combination])
+            for i, (weight, positions) in enumerate(target.inbetweens):
+                spec.inbetween_weights.append(float(weight))
+                inbetweens.append(self._same_shape(positions, rest, f"{where}: inbetweens[{i}].mesh"))
+            if target.mask is not None:
+                mask = arrays.as_array(target.mask, f"{where}: mask", np.float64).reshape(-1)
+                if len(mask) != len(rest):
+                    raise invalid_argument(f"{where}: mask: {len(mask)} values, but the rest mesh has {len(rest)} "
+                                           "vertices")
+                spec.has_mask = True
+                masks[index] = np.ascontiguousarray(mask, dtype="<f8").tobytes()
+            specs.append(spec)
+        fixed = [int(v) for v in (*rig.fixed_vertices, *fixed_vertices)]
+        header = pb.UploadHeader(name=name, vertex_count=len(rest), face_count=len(faces),
+                                 target_names=[t.name for t in rig.targets], targets=specs,
+                                 options=pb.BuildOptions(fixed_vertices=fixed, **options))
+        try:
+            return self._upload(header, faces, shapes_ + inbetweens, masks)
+        except SpringblendError as error:
+            raise SpringblendError(error.code, f"{rig.path}: {error.message}") from None
+
+    @staticmethod
+    def _same_shape(positions, rest, what):
+        points = arrays.as_points(positions, what)
+        if points.shape != rest.shape:
+            raise invalid_argument(f"{what}: {len(points)} vertices, but the rest mesh has {len(rest)}")
+        return points
+
+    def _upload(self, header, faces, shapes_, masks):
+        """Streams the header, the faces, every shape's positions (rest, targets, in-betweens) and the masks
+        ({target index: float64 bytes})."""
         def chunks():
             yield pb.UploadChunk(header=header)
             yield from self._pieces(pb.MeshPiece.FACES, 0, faces.tobytes(), len(faces), 12)
             for shape, points in enumerate(shapes_):
                 yield from self._pieces(pb.MeshPiece.POSITIONS, shape, arrays.pack_float64(points), len(points), 24)
+            for target, data in masks.items():
+                yield from self._pieces(pb.MeshPiece.MASK, target, data, len(data) // 8, 8)
 
         return self._call(self._characters.UploadCharacter, chunks())
 

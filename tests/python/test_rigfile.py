@@ -1,0 +1,174 @@
+"""Rig files in the Python client (issue 18): springblend.rigfile reads the bundled cylinder rig as the C++ CLI
+does (an upload gives the CLI's character id), refuses bad rig files naming the file, the target and the field,
+writes rigs that read back exactly, and a rig uploaded with upload_rig solves to the CLI's local frames."""
+
+import json
+import os
+import tempfile
+import unittest
+
+import grpc
+import numpy as np
+
+import springblend
+from springblend import rigfile
+import springblend_testing as testing
+
+RIG = str(testing.CYLINDER / "rig.json")
+# bend (with an in-between at 0.5) and twist (masked); the combination bend_twist follows their product.
+WEIGHTS = [[0.25, 0.5], [0.5, 0.0], [1.0, 1.0]]
+
+
+def good_rig():
+    """The bundled rig as JSON with absolute paths, for edits written into a temporary directory."""
+    with open(RIG) as text:
+        doc = json.load(text)
+    absolute = lambda name: str(testing.CYLINDER / name)  # noqa: E731
+    doc["rest"] = absolute(doc["rest"])
+    for target in doc["targets"]:
+        target["mesh"] = absolute(target["mesh"])
+        for inbetween in target.get("inbetweens", []):
+            inbetween["mesh"] = absolute(inbetween["mesh"])
+        if isinstance(target.get("mask"), str):
+            target["mask"] = absolute(target["mask"])
+    return doc
+
+
+class RigFileTest(unittest.TestCase):
+    """No server needed."""
+
+    def test_reads_the_bundled_rig(self):
+        rig = rigfile.load_rig(RIG)
+        self.assertEqual(rig.weight_names, ["bend", "twist"])
+        self.assertEqual([t.name for t in rig.targets], ["bend", "twist", "bend_twist"])
+        self.assertEqual(rig.rest.shape, (420, 3))
+        self.assertEqual([w for w, _ in rig.targets[0].inbetweens], [0.5])
+        self.assertEqual(rig.targets[1].mask.shape, (420,))
+        self.assertEqual((rig.targets[1].mask.min(), rig.targets[1].mask.max()), (0.0, 1.0))
+        self.assertEqual(rig.targets[2].combination, ["bend", "twist"])
+
+    def test_bad_rig_files_name_file_target_and_field(self):
+        def edit_mask(doc, directory):
+            doc["targets"][1]["mask"] = os.path.join(directory, "short.txt")
+            with open(doc["targets"][1]["mask"], "w") as out:
+                out.write("1\n0\n")
+
+        def bad_mask_line(doc, directory):
+            doc["targets"][1]["mask"] = os.path.join(directory, "bad.txt")
+            with open(doc["targets"][1]["mask"], "w") as out:
+                out.write("1\nx1\n")
+
+        cases = [
+            ("unknown key", lambda d, _: d.update(rst=1), ["unknown key 'rst'"]),
+            ("unknown target key", lambda d, _: d["targets"][1].update(maks="m"), ["targets[1]", "unknown key 'maks'"]),
+            ("weight a string", lambda d, _: d["targets"][0]["inbetweens"][0].update(weight="half"),
+             ["target 'bend': inbetweens[0].weight", "expected a number, got string"]),
+            ("missing mesh", lambda d, _: d["targets"][0].update(mesh="nowhere.obj"),
+             ["target 'bend': mesh", "file not found", "nowhere.obj"]),
+            ("inline mask too short", lambda d, _: d["targets"][1].update(mask=[1.0] * 419),
+             ["target 'twist': mask", "419 values", "420 vertices"]),
+            ("mask file too short", edit_mask, ["target 'twist': mask", "2 values in", "short.txt"]),
+            ("mask file bad line", bad_mask_line, ["target 'twist': mask", "bad.txt", "line 2", "'x1' is not a number"]),
+            ("another topology", lambda d, _: d["targets"][1].update(mesh=str(testing.DATA / "cube" / "cube.obj")),
+             ["target 'twist': mesh", "vertices, but the rest mesh has 420"]),
+            ("combination not a list", lambda d, _: d["targets"][2].update(combination="bend"),
+             ["target 'bend_twist': combination", "expected a list, got string"]),
+        ]
+        for what, edit, parts in cases:
+            with self.subTest(what), tempfile.TemporaryDirectory() as directory:
+                doc = good_rig()
+                edit(doc, directory)
+                path = os.path.join(directory, "rig.json")
+                with open(path, "w") as out:
+                    json.dump(doc, out)
+                with self.assertRaises(springblend.SpringblendError) as caught:
+                    rigfile.load_rig(path)
+                self.assertEqual(caught.exception.code, grpc.StatusCode.INVALID_ARGUMENT)
+                for part in [path + ": "] + parts:
+                    self.assertIn(part, caught.exception.message)
+
+    def test_written_rig_reads_back_exactly(self):
+        rig = rigfile.load_rig(RIG)
+        with tempfile.TemporaryDirectory() as directory:
+            again = rigfile.load_rig(rigfile.write_rig(os.path.join(directory, "copy.json"), rig))
+        np.testing.assert_array_equal(again.rest, rig.rest)
+        np.testing.assert_array_equal(again.faces, rig.faces)
+        for a, b in zip(again.targets, rig.targets):
+            self.assertEqual((a.name, a.combination), (b.name, b.combination))
+            np.testing.assert_array_equal(a.positions, b.positions)
+            self.assertEqual([w for w, _ in a.inbetweens], [w for w, _ in b.inbetweens])
+            for (_, p), (_, q) in zip(a.inbetweens, b.inbetweens):
+                np.testing.assert_array_equal(p, q)
+            if b.mask is None:
+                self.assertIsNone(a.mask)
+            else:
+                np.testing.assert_array_equal(a.mask, b.mask)
+
+
+class RigUploadTest(unittest.TestCase):
+    @classmethod
+    def setUpClass(cls):
+        cls.server = testing.Server()
+        cls.client = springblend.Client(cls.server.address, timeout=180)
+        cls.character = cls.client.upload_rig(RIG, name="cylinder rig")
+
+    @classmethod
+    def tearDownClass(cls):
+        cls.client.close()
+        cls.server.stop()
+
+    def test_upload_gives_the_clis_character(self):
+        c = self.character
+        self.assertEqual(list(c.target_names), ["bend", "twist"])
+        self.assertEqual(list(c.combination_names), ["bend_twist"])
+        line = testing.cli("upload", "--server", self.server.address, "--rig", RIG).splitlines()[-1]
+        self.assertEqual(json.loads(line)["id"], c.id)
+        self.assertTrue(json.loads(line)["cache_hit"])
+
+    def test_inbetweens_masks_and_combinations_change_the_id(self):
+        rig = rigfile.load_rig(RIG)
+        rig.targets[1].mask = None
+        self.assertNotEqual(self.client.upload_rig(rig).id, self.character.id)
+        rig = rigfile.load_rig(RIG)
+        rig.targets[0].inbetweens = []
+        self.assertNotEqual(self.client.upload_rig(rig).id, self.character.id)
+        # A rig of plain targets is the plain upload's character.
+        rig = rigfile.load_rig(RIG)
+        plain = rigfile.Rig(rig.rest, rig.faces, [rigfile.Target(t.name, t.positions) for t in rig.targets[:2]])
+        targets = {t.name: t.positions for t in plain.targets}
+        self.assertEqual(self.client.upload_rig(plain).id, self.client.upload(rig.rest, rig.faces, targets).id)
+
+    def test_server_refusals_name_the_rig_file(self):
+        rig = rigfile.load_rig(RIG)
+        rig.targets[0].inbetweens = [(1.5, rig.targets[0].inbetweens[0][1])]
+        with self.assertRaises(springblend.SpringblendError) as caught:
+            self.client.upload_rig(rig)
+        self.assertEqual(caught.exception.code, grpc.StatusCode.INVALID_ARGUMENT)
+        for part in [RIG + ": ", "target 'bend'", "inbetweens[0].weight"]:
+            self.assertIn(part, caught.exception.message)
+
+    def test_frames_equal_the_clis_local_blend(self):
+        solution = self.client.solve(self.character.id, WEIGHTS)
+        self.assertTrue(solution.converged)
+        with tempfile.TemporaryDirectory() as directory:
+            scene = os.path.join(directory, "scene.json")
+            with open(scene, "w") as out:
+                json.dump({"frames": [{"weights": w} for w in WEIGHTS]}, out)
+            testing.cli("blend", "--rig", RIG, "--frames", scene, "--out", os.path.join(directory, "local"))
+            local = np.stack([testing.load_obj(os.path.join(directory, "local", f"frame_{i:04d}.obj"))[0]
+                              for i in range(len(WEIGHTS))])
+            # The CLI's upload and solve through the server: the same frames again.
+            remote, _ = testing.cli_solve(self.server.address, self.character.id, [{"weights": w} for w in WEIGHTS],
+                                          [], directory)
+        diagonal = testing.bounding_box_diagonal(local[0])
+        self.assertLessEqual(np.abs(solution.positions - local).max(), 1e-5 * diagonal)
+        self.assertLessEqual(np.abs(remote - local).max(), 1e-5 * diagonal)
+        # Frame 1 is the in-between, frame 2 the combination's sculpt.
+        half = testing.load_obj(testing.CYLINDER / "poses-2_cylinder-1.obj")[0]
+        sculpt = testing.load_obj(testing.CYLINDER / "poses-2_cylinder-4.obj")[0]
+        self.assertLessEqual(np.abs(local[1] - half).max(), 1e-5 * diagonal)
+        self.assertLessEqual(np.abs(local[2] - sculpt).max(), 1e-5 * diagonal)
+
+
+if __name__ == "__main__":
+    unittest.main()
