@@ -339,14 +339,13 @@ def apply(preview, answer):
     if obj.mode == "EDIT":
         return  # edit mode owns the mesh; the next answer after it shows
     keys = obj.data.shape_keys
-    names = preview.channel.target_names
     rest = scene_data.key_positions(keys.reference_key)
     if len(answer.positions) != len(rest):
         stop(f"'{obj.name}' has {len(rest)} vertices, the server's character {len(answer.positions)}: upload again",
              "ERROR")
         return
-    targets = [scene_data.key_positions(keys.key_blocks[n]) for n in names]
-    linear = scene_data.linear_blend(rest, targets, answer.request.weights)
+    # What Blender shows from the keys now (in-betweens, combinations and vertex-group masks included).
+    linear = scene_data.shown_blend(obj, rest, scene_data.key_values(obj))
     live = keys.key_blocks.get(LIVE_KEY)
     if live is None:
         live = obj.shape_key_add(name=LIVE_KEY, from_mix=False)

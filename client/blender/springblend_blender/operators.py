@@ -63,14 +63,52 @@ class SPRINGBLEND_OT_upload(_Guarded, bpy.types.Operator):
 
     def run(self, context):
         obj = context.active_object
-        rest, faces, targets = scene_data.character_arrays(obj)
+        rig = _character_rig(obj)
+        rest, targets = rig.rest, rig.targets
         with connection.connect(context.scene) as client:
-            character = client.upload(rest, faces, targets, name=obj.name)
+            character = client.upload_rig(rig, name=obj.name)
         obj.springblend_character = character.id
         how = "already on the server" if character.cache_hit else \
             f"rig built in {character.summary.precompute_ms:.0f} ms"
         self.report({"INFO"}, f"springblend: uploaded '{obj.name}' ({len(rest)} vertices, {len(targets)} "
                               f"targets) as {character.id[:12]}, {how}")
+        return {"FINISHED"}
+
+
+def _character_rig(obj):
+    """The object's shape keys and vertex groups as a springblend.rigfile.Rig (README: Blender conventions)."""
+    rigfile = connection.client_module().rigfile
+    rest, faces, targets = scene_data.character_rig(obj)
+    return rigfile.Rig(rest, faces, [rigfile.Target(**t) for t in targets], path=f"'{obj.name}'")
+
+
+class SPRINGBLEND_OT_export_rig(_Guarded, bpy.types.Operator):
+    """Write the active mesh's shape keys and vertex groups as a springblend rig file (JSON, with OBJ meshes and
+    mask files beside it), for springblend blend --rig and springblend upload --rig"""
+    bl_idname = "springblend.export_rig"
+    bl_label = "Export Rig File"
+
+    filepath: bpy.props.StringProperty(subtype="FILE_PATH")
+    filter_glob: bpy.props.StringProperty(default="*.json", options={"HIDDEN"})
+
+    @classmethod
+    def poll(cls, context):
+        return context.active_object is not None and context.active_object.type == "MESH"
+
+    def invoke(self, context, event):
+        if not self.filepath:
+            self.filepath = bpy.path.clean_name(context.active_object.name) + ".json"
+        context.window_manager.fileselect_add(self)
+        return {"RUNNING_MODAL"}
+
+    def run(self, context):
+        obj = context.active_object
+        if not self.filepath:
+            raise UserError("choose where to write the rig file")
+        path = bpy.path.abspath(self.filepath)
+        rig = _character_rig(obj)
+        connection.client_module().rigfile.write_rig(path, rig)
+        self.report({"INFO"}, f"springblend: wrote the rig of '{obj.name}' ({len(rig.targets)} targets) to {path}")
         return {"FINISHED"}
 
 
@@ -103,10 +141,9 @@ class SPRINGBLEND_OT_bake(_Guarded, bpy.types.Operator):
             if not to_cache:
                 store.remove_bake(obj)
                 store.remove_cache(obj)
-            frames, request = self._read_frames(scene, obj, target_names, first, last, springblend)
+            frames, request, shown_values = self._read_frames(scene, obj, target_names, first, last, springblend)
             rest = scene_data.key_positions(obj.data.shape_keys.reference_key)
-            targets = [scene_data.key_positions(obj.data.shape_keys.key_blocks[n]) for n in target_names]
-            if any(len(t) != len(rest) for t in targets) or len(rest) != len(obj.data.vertices):
+            if len(rest) != len(obj.data.vertices):
                 raise UserError(f"'{obj.name}' changed its vertex count since the upload: upload again")
             started = time.monotonic()
             window_manager = context.window_manager
@@ -122,7 +159,7 @@ class SPRINGBLEND_OT_bake(_Guarded, bpy.types.Operator):
                         if to_cache:
                             cache.add(solved.positions)
                         else:
-                            linear = scene_data.linear_blend(rest, targets, request["weights"][solved.index])
+                            linear = scene_data.shown_blend(obj, rest, shown_values[solved.index])
                             store.store_frame(obj, frame, rest, linear, solved.positions)
                         if not solved.summary.converged:
                             unconverged.append(f"{frame} ({solved.summary.termination})")
@@ -142,10 +179,11 @@ class SPRINGBLEND_OT_bake(_Guarded, bpy.types.Operator):
 
     @staticmethod
     def _read_frames(scene, obj, target_names, first, last, springblend):
-        """Steps the timeline over the range and collects each frame's weights and collider motions."""
+        """Steps the timeline over the range and collects each frame's weights, every key's value (what Blender
+        shows, for the corrective keys) and the collider motions."""
         colliders = scene_data.collider_objects(scene.springblend.colliders)
         frames = list(range(first, last + 1))
-        weights, motions, shapes = [], [], []
+        weights, values, motions, shapes = [], [], [], []
         current = scene.frame_current
         try:
             for frame in frames:
@@ -154,11 +192,12 @@ class SPRINGBLEND_OT_bake(_Guarded, bpy.types.Operator):
                     shapes = [scene_data.collider_message(springblend, scene_data.collider_geometry(obj, c))
                               for c in colliders]
                 weights.append(scene_data.frame_weights(obj, target_names))
+                values.append(scene_data.key_values(obj))
                 motions.append([scene_data.collider_motion(obj, c) for c in colliders])
         finally:
             scene.frame_set(current)
         request = {"weights": weights, "colliders": shapes, "collider_transforms": motions if colliders else None}
-        return frames, request
+        return frames, request, values
 
 
 def _cache_path(scene, obj):
@@ -219,5 +258,5 @@ class SPRINGBLEND_OT_live_report(bpy.types.Operator):
         return {"FINISHED"}
 
 
-CLASSES = [SPRINGBLEND_OT_check_server, SPRINGBLEND_OT_upload, SPRINGBLEND_OT_bake, SPRINGBLEND_OT_live_preview,
+CLASSES = [SPRINGBLEND_OT_check_server, SPRINGBLEND_OT_upload, SPRINGBLEND_OT_export_rig, SPRINGBLEND_OT_bake, SPRINGBLEND_OT_live_preview,
            SPRINGBLEND_OT_live_report]

@@ -29,7 +29,9 @@ class SPRINGBLEND_PT_main(bpy.types.Panel):
             character = obj.springblend_character
             box.label(text=f"Character {character[:12]}" if character else "Not uploaded",
                       icon="CHECKMARK" if character else "DOT")
-            box.operator("springblend.upload", icon="EXPORT")
+            row = box.row(align=True)
+            row.operator("springblend.upload", icon="EXPORT")
+            row.operator("springblend.export_rig", text="", icon="FILE_TICK")
 
         layout.prop(settings, "colliders")
         if obj is not None and obj.type in {"EMPTY", "MESH"}:

@@ -44,26 +44,106 @@ def key_positions(key_block):
     return flat.reshape(-1, 3).astype(np.float64)
 
 
-def character_arrays(obj):
-    """(rest #V by 3, faces #F by 3 int32, {target name: #V by 3}) of a mesh object with shape keys, in the
-    object's local space. Polygons are triangulated the way Blender draws them; vertex order is Blender's."""
+# Production rigs (README: Blender conventions). A shape key named TARGET@W (W in (0, 1), e.g. jawOpen@0.5) is
+# an in-between of the key TARGET; one named A*B[*C...] (e.g. jawOpen*mouthSmile_L) is a combination corrective
+# of the keys A, B, ... (its shape is the sculpt with every driver at 1); a key's vertex group is its mask.
+INBETWEEN_MARK = "@"
+COMBINATION_MARK = "*"
+
+
+def key_role(name):
+    """("target", None), ("inbetween", (target name, weight)) or ("combination", [driver names]) of a key's name."""
+    if COMBINATION_MARK in name:
+        return "combination", [part.strip() for part in name.split(COMBINATION_MARK)]
+    target, mark, weight = name.rpartition(INBETWEEN_MARK)
+    if mark and target:
+        try:
+            return "inbetween", (target, float(weight))
+        except ValueError:
+            raise UserError(f"shape key '{name}': '{weight}' after '{INBETWEEN_MARK}' is not a weight; an "
+                            f"in-between is named TARGET{INBETWEEN_MARK}W with W in (0, 1), e.g. jawOpen@0.5") \
+                from None
+    return "target", None
+
+
+def vertex_group_mask(obj, group_name, vertex_count):
+    """One weight per vertex of a vertex group (0 for vertices not in it)."""
+    group = obj.vertex_groups.get(group_name)
+    if group is None:
+        raise UserError(f"vertex group '{group_name}' is gone from '{obj.name}'")
+    mask = np.zeros(vertex_count, dtype=np.float64)
+    for vertex in obj.data.vertices:
+        for element in vertex.groups:
+            if element.group == group.index:
+                mask[vertex.index] = element.weight
+    return mask
+
+
+def character_rig(obj):
+    """(rest #V by 3, faces #F by 3 int32, targets) of a mesh object with shape keys, in the object's local space.
+    targets: a list of dicts (name, positions, inbetweens [(weight, positions)], mask or None, combination) in
+    shape-key order, the fields of springblend.rigfile.Target. Polygons are triangulated the way Blender draws
+    them; vertex order is Blender's."""
     keys = shape_keys(obj)
-    targets = {}
+    vertex_count = len(obj.data.vertices)
+    targets, inbetweens = {}, []
     for kb in target_blocks(keys):
         if kb.relative_key != keys.reference_key:
             raise UserError(f"shape key '{kb.name}' is relative to '{kb.relative_key.name}'; springblend needs "
                             f"every target relative to '{keys.reference_key.name}'")
+        role, detail = key_role(kb.name)
+        if role == "inbetween":
+            if kb.vertex_group:
+                raise UserError(f"in-between key '{kb.name}' has vertex group '{kb.vertex_group}': an in-between "
+                                f"takes the mask of its target '{detail[0]}'")
+            inbetweens.append((kb.name, detail, key_positions(kb)))
+            continue
+        target = {"name": kb.name, "positions": key_positions(kb), "inbetweens": [], "mask": None,
+                  "combination": detail if role == "combination" else []}
         if kb.vertex_group:
-            raise UserError(f"shape key '{kb.name}' is limited to vertex group '{kb.vertex_group}', which "
-                            "springblend cannot send; apply it into the key first")
-        targets[kb.name] = key_positions(kb)
+            if role == "combination":
+                raise UserError(f"combination key '{kb.name}' has vertex group '{kb.vertex_group}': a combination "
+                                "takes no mask")
+            target["mask"] = vertex_group_mask(obj, kb.vertex_group, vertex_count)
+        targets[kb.name] = target
+    for name, (target_name, weight), positions in inbetweens:
+        if target_name not in targets:
+            raise UserError(f"in-between key '{name}': there is no shape key '{target_name}' it belongs to")
+        targets[target_name]["inbetweens"].append((weight, positions))
     mesh = obj.data
     mesh.calc_loop_triangles()
     if len(mesh.loop_triangles) == 0:
         raise UserError(f"'{obj.name}' has no faces")
     faces = np.empty(len(mesh.loop_triangles) * 3, dtype=np.int32)
     mesh.loop_triangles.foreach_get("vertices", faces)
-    return key_positions(keys.reference_key), faces.reshape(-1, 3), targets
+    return key_positions(keys.reference_key), faces.reshape(-1, 3), list(targets.values())
+
+
+def is_production_rig(targets):
+    """Whether any target of character_rig has in-betweens, a mask or drivers (else a plain upload)."""
+    return any(t["inbetweens"] or t["mask"] is not None or t["combination"] for t in targets)
+
+
+def key_values(obj):
+    """{key name: the value Blender applies now} of every target, in-between and combination key (a muted key
+    counts 0)."""
+    return {kb.name: 0.0 if kb.mute else float(kb.value) for kb in target_blocks(obj.data.shape_keys)}
+
+
+def shown_blend(obj, rest, values):
+    """What Blender shows from the keys at these values (key_values), without the bake's or the live preview's
+    keys: rest + sum over keys of value * vertex-group weight * (key - rest), Blender's relative shape keys."""
+    keys = obj.data.shape_keys
+    blend = rest.copy()
+    for kb in target_blocks(keys):
+        value = values.get(kb.name, 0.0)
+        if value == 0.0:
+            continue
+        change = key_positions(kb) - rest
+        if kb.vertex_group:
+            change *= vertex_group_mask(obj, kb.vertex_group, len(rest))[:, None]
+        blend += value * change
+    return blend
 
 
 def frame_weights(obj, target_names):

@@ -1,0 +1,55 @@
+"""The Blender add-on with a production rig (issue 18), headless in a real Blender: rig_in_blender.py builds the
+cylinder from the bundled rig file as shape keys (an in-between key bend@0.5, a vertex group as twist's mask, a
+combination key bend*twist), exports it with the add-on's Export Rig File, uploads and bakes 3 frames through
+the operators. Then the exported rig file uploaded by the C++ CLI must be the add-on's character (same id), and
+what Blender shows on each baked frame must equal the CLI's local `blend --rig` of the exported file.
+
+Run by CTest with /usr/bin/python3; needs $BLENDER, $SPRINGBLEND_ADDON_ZIP and what springblend_testing reads.
+"""
+
+import json
+import os
+import pathlib
+import sys
+import tempfile
+
+import numpy as np
+
+sys.path.insert(0, str(pathlib.Path(__file__).parent))
+import blender_runner as runner  # noqa: E402
+from blender_runner import testing  # noqa: E402
+
+FRAMES = [1, 2, 3]
+# bend, twist per frame: a mix, the in-between alone, both drivers at 1 (the combination's sculpt).
+WEIGHTS = [[0.25, 0.5], [0.5, 0.0], [1.0, 1.0]]
+
+
+def main():
+    runner.blender_executable()
+    with testing.Server() as server, tempfile.TemporaryDirectory(prefix="springblend-blender-rig-") as directory:
+        config = {"server": server.address, "addon_zip": testing.required_path("SPRINGBLEND_ADDON_ZIP"),
+                  "rig": str(testing.CYLINDER / "rig.json"), "frames": FRAMES, "weights": WEIGHTS,
+                  "export": os.path.join(directory, "exported", "cylinder.json"),
+                  "output": os.path.join(directory, "baked.npy"), "result": os.path.join(directory, "result.json")}
+        runner.run_blender("rig_in_blender.py", config, directory, server)
+        baked = np.load(config["output"])
+        with open(config["result"]) as text:
+            character = json.load(text)["character"]
+        exported = config["export"]
+        line = testing.cli("upload", "--server", server.address, "--rig", exported).splitlines()[-1]
+        if json.loads(line)["id"] != character:
+            raise SystemExit(f"rig_test: the CLI's upload of the exported rig is {line}, not the add-on's {character}")
+        scene = os.path.join(directory, "scene.json")
+        with open(scene, "w") as out:
+            json.dump({"frames": [{"weights": w} for w in WEIGHTS]}, out)
+        testing.cli("blend", "--rig", exported, "--frames", scene, "--out", os.path.join(directory, "local"))
+        expected = np.stack([testing.load_obj(os.path.join(directory, "local", f"frame_{i:04d}.obj"))[0]
+                             for i in range(len(FRAMES))])
+    runner.largest_error(baked, expected, "rig_test (shape keys of a production rig)")
+    sculpt = testing.load_obj(testing.CYLINDER / "poses-2_cylinder-4.obj")[0]
+    runner.largest_error(baked[2:], sculpt[None], "rig_test (the combination's sculpt with its drivers at 1)")
+    print("rig_test: OK")
+
+
+if __name__ == "__main__":
+    main()
