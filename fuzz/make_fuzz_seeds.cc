@@ -117,5 +117,14 @@ int main(int argc, char** argv) {
   character.shapes = {mesh.vertices, mesh.vertices * 1.1};
   character.options.fixed_vertices = {0, 1};
   std::ofstream(std::string(argv[3]) + "/mesh", std::ios::binary) << server::Serialize(character);
+  // A production rig: an in-between, a mask and a combination (the section after the shapes).
+  character.target_names = {"open", "wide", "open_wide"};
+  character.shapes = {mesh.vertices, mesh.vertices * 1.1, mesh.vertices * 0.9, mesh.vertices * 1.05};
+  character.target_rigs.resize(3);
+  character.target_rigs[0].inbetween_weights = {0.5};
+  character.target_rigs[0].inbetweens = {mesh.vertices * 1.05};
+  character.target_rigs[1].mask.assign(static_cast<size_t>(mesh.vertices.rows()), 0.5);
+  character.target_rigs[2].combination = {"open", "wide"};
+  std::ofstream(std::string(argv[3]) + "/rig", std::ios::binary) << server::Serialize(character);
   return 0;
 }
