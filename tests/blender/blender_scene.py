@@ -28,16 +28,23 @@ def install_addon(zip_path):
     check(ADDON in bpy.context.preferences.addons, "the add-on did not enable")
 
 
-def build_cylinder(config):
-    """The cylinder mesh with a Basis and one shape key per target, values keyed per frame."""
-    directory = pathlib.Path(config["cylinder"])
-    rest, faces = load_obj(directory / "cylinder.obj")
+def new_character(rest_obj):
+    """A mesh object "Cylinder" of an OBJ file, linked to the scene, with a Basis shape key."""
+    rest, faces = load_obj(rest_obj)
     mesh = bpy.data.meshes.new("cylinder")
     mesh.from_pydata(rest.tolist(), [], faces.tolist())
     mesh.update()
     obj = bpy.data.objects.new("Cylinder", mesh)
     bpy.context.scene.collection.objects.link(obj)
     obj.shape_key_add(name="Basis", from_mix=False)
+    return obj
+
+
+def build_cylinder(config):
+    """The cylinder mesh with a Basis and one shape key per target, values keyed per frame."""
+    directory = pathlib.Path(config["cylinder"])
+    obj = new_character(directory / "cylinder.obj")
+    mesh = obj.data
     for name in config["targets"]:
         key = obj.shape_key_add(name=name, from_mix=False)
         key.data.foreach_set("co", load_obj(directory / f"{name}.obj")[0].astype(np.float32).ravel())

@@ -14,7 +14,7 @@ import bpy
 import numpy as np
 
 sys.path.insert(0, str(pathlib.Path(__file__).parent))
-from blender_scene import check, expect_error_report, install_addon, shown_positions  # noqa: E402
+from blender_scene import check, expect_error_report, install_addon, new_character, shown_positions  # noqa: E402
 from springblend_testing import load_obj  # noqa: E402  (blender_scene put tests/python on sys.path)
 
 
@@ -22,13 +22,8 @@ def build_rig(config):
     """The rig file's meshes as Basis and shape keys; bend and twist keyed per frame."""
     doc = json.loads(pathlib.Path(config["rig"]).read_text())
     base = pathlib.Path(config["rig"]).parent
-    rest, faces = load_obj(base / doc["rest"])
-    mesh = bpy.data.meshes.new("cylinder")
-    mesh.from_pydata(rest.tolist(), [], faces.tolist())
-    mesh.update()
-    obj = bpy.data.objects.new("Cylinder", mesh)
-    bpy.context.scene.collection.objects.link(obj)
-    obj.shape_key_add(name="Basis", from_mix=False)
+    obj = new_character(base / doc["rest"])
+    mesh = obj.data
 
     def key(name, file):
         kb = obj.shape_key_add(name=name, from_mix=False)

@@ -39,12 +39,7 @@ def main():
         line = testing.cli("upload", "--server", server.address, "--rig", exported).splitlines()[-1]
         if json.loads(line)["id"] != character:
             raise SystemExit(f"rig_test: the CLI's upload of the exported rig is {line}, not the add-on's {character}")
-        scene = os.path.join(directory, "scene.json")
-        with open(scene, "w") as out:
-            json.dump({"frames": [{"weights": w} for w in WEIGHTS]}, out)
-        testing.cli("blend", "--rig", exported, "--frames", scene, "--out", os.path.join(directory, "local"))
-        expected = np.stack([testing.load_obj(os.path.join(directory, "local", f"frame_{i:04d}.obj"))[0]
-                             for i in range(len(FRAMES))])
+        expected = testing.cli_blend_rig(exported, WEIGHTS, directory)
     runner.largest_error(baked, expected, "rig_test (shape keys of a production rig)")
     sculpt = testing.load_obj(testing.CYLINDER / "poses-2_cylinder-4.obj")[0]
     runner.largest_error(baked[2:], sculpt[None], "rig_test (the combination's sculpt with its drivers at 1)")

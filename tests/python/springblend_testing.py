@@ -148,3 +148,14 @@ def cli_solve(address, character, frames, colliders, directory):
     summaries = [json.loads(line) for line in lines.splitlines() if line.startswith("{")]
     positions = np.stack([load_obj(os.path.join(out_dir, f"frame_{i:04d}.obj"))[0] for i in range(len(frames))])
     return positions, summaries
+
+
+def cli_blend_rig(rig, weights, directory):
+    """Solves frames of a rig file locally with the CLI (`blend --rig RIG --frames`); returns the positions,
+    #frames by #V by 3, read back from its OBJ files."""
+    scene = os.path.join(directory, "rig_scene.json")
+    with open(scene, "w") as out:
+        json.dump({"frames": [{"weights": w} for w in weights]}, out)
+    out_dir = os.path.join(directory, "rig_local")
+    cli("blend", "--rig", str(rig), "--frames", scene, "--out", out_dir)
+    return np.stack([load_obj(os.path.join(out_dir, f"frame_{i:04d}.obj"))[0] for i in range(len(weights))])

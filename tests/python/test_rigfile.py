@@ -151,12 +151,7 @@ class RigUploadTest(unittest.TestCase):
         solution = self.client.solve(self.character.id, WEIGHTS)
         self.assertTrue(solution.converged)
         with tempfile.TemporaryDirectory() as directory:
-            scene = os.path.join(directory, "scene.json")
-            with open(scene, "w") as out:
-                json.dump({"frames": [{"weights": w} for w in WEIGHTS]}, out)
-            testing.cli("blend", "--rig", RIG, "--frames", scene, "--out", os.path.join(directory, "local"))
-            local = np.stack([testing.load_obj(os.path.join(directory, "local", f"frame_{i:04d}.obj"))[0]
-                              for i in range(len(WEIGHTS))])
+            local = testing.cli_blend_rig(RIG, WEIGHTS, directory)
             # The CLI's upload and solve through the server: the same frames again.
             remote, _ = testing.cli_solve(self.server.address, self.character.id, [{"weights": w} for w in WEIGHTS],
                                           [], directory)
