@@ -231,5 +231,33 @@ TEST(RigMasks, AllZeroMaskIsTheRestShapeAndAllOneMaskIsNoMask) {
   }
 }
 
+// The face (6706 vertices, an open shell) with jawOpen and an in-between sculpted here (the linear midpoint pushed
+// forward a little); no target paths, so the build takes seconds: the sculpts are still reproduced exactly.
+TEST(RigFace, InbetweenTargetAndAllZeroMaskOnTheFace) {
+  TempDir dir;
+  const TriangleMesh rest = LoadMesh(DataPath("face/generic_neutral_mesh.obj"));
+  const TriangleMesh open = LoadMesh(DataPath("face/jawOpen.obj"));
+  Points half = (rest.vertices + open.vertices) / 2;
+  half.col(2) += 0.02 * (open.vertices - rest.vertices).rowwise().norm();
+  WriteObj(dir.File("half.obj"), half, rest.faces);
+  RigOptions options;
+  options.target_paths = false;
+  const auto rig_of = [&](const nlohmann::json& target) {
+    const nlohmann::json rig = {{"rest", DataPath("face/generic_neutral_mesh.obj")}, {"targets", {target}}};
+    return BuildRig(LoadRigFile(WriteRig(dir, rig)), options);
+  };
+  const double tolerance = 1e-6 * BoundingBoxDiagonal(rest.vertices);
+  const auto rig = rig_of({{"name", "jawOpen"},
+                           {"mesh", DataPath("face/jawOpen.obj")},
+                           {"inbetweens", {{{"weight", 0.5}, {"mesh", dir.File("half.obj")}}}}});
+  // Read back as float32, as every mesh file is.
+  EXPECT_LE(MaxDistance(Solve(rig, {0.5}), LoadMesh(dir.File("half.obj")).vertices), tolerance);
+  EXPECT_LE(MaxDistance(Solve(rig, {1.0}), open.vertices), tolerance);
+  const auto off = rig_of({{"name", "jawOpen"},
+                           {"mesh", DataPath("face/jawOpen.obj")},
+                           {"mask", std::vector<double>(static_cast<size_t>(rest.vertices.rows()), 0.0)}});
+  EXPECT_LE(MaxDistance(Solve(off, {1.0}), rest.vertices), tolerance);
+}
+
 }  // namespace
 }  // namespace springblend::cli
