@@ -131,7 +131,7 @@ int RunUpload(const RemoteArgs& args) {
     const RigFile rig = LoadRigFile(args.rig);
     for (int v : rig.fixed_vertices) options.add_fixed_vertices(static_cast<std::uint32_t>(v));
     try {
-      c = client.Upload(rig.rest, rig.targets, options, args.name.empty() ? rig.rest.name : args.name);
+      c = client.UploadRig(rig.rest, rig.targets, options, args.name.empty() ? rig.rest.name : args.name);
     } catch (const ClientError& e) {
       // The server's refusal names the target and the field; say which file they are in.
       throw ClientError(e.code(), fmt::format("{}: {}", rig.path, e.what()));

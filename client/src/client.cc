@@ -81,7 +81,7 @@ v1::Character Client::Upload(const TriangleMesh& rest, const std::vector<Triangl
                              const v1::BuildOptions& options, const std::string& name) {
   std::vector<RigTarget> plain(targets.size());
   for (size_t t = 0; t < targets.size(); ++t) plain[t].mesh = targets[t];
-  return Upload(rest, plain, options, name);
+  return UploadRig(rest, plain, options, name);
 }
 
 namespace {
@@ -109,8 +109,8 @@ void CheckTopology(const TriangleMesh& rest, const TriangleMesh& shape) {
 
 }  // namespace
 
-v1::Character Client::Upload(const TriangleMesh& rest, const std::vector<RigTarget>& targets,
-                             const v1::BuildOptions& options, const std::string& name) {
+v1::Character Client::UploadRig(const TriangleMesh& rest, const std::vector<RigTarget>& targets,
+                                const v1::BuildOptions& options, const std::string& name) {
   std::vector<const TriangleMesh*> shapes = {&rest};  // the POSITIONS arrays, in the proto's shape order
   bool production = false;
   for (const auto& t : targets) {

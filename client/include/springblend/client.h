@@ -94,8 +94,8 @@ class Client {
                        const v1::BuildOptions& options = {}, const std::string& name = "");
   // A production rig: in-betweens, masks and combinations travel with the meshes (TargetRig in the proto).
   // Solves then take one weight per target that is not a combination, in order.
-  v1::Character Upload(const TriangleMesh& rest, const std::vector<RigTarget>& targets,
-                       const v1::BuildOptions& options = {}, const std::string& name = "");
+  v1::Character UploadRig(const TriangleMesh& rest, const std::vector<RigTarget>& targets,
+                          const v1::BuildOptions& options = {}, const std::string& name = "");
   v1::Character Get(const std::string& id, bool with_faces = false);
   std::vector<v1::Character> List();
   void Delete(const std::string& id);
