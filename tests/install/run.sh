@@ -62,7 +62,7 @@ for _ in $(seq 1 100); do
 done
 [ -n "$port" ] || fail "the server did not say where it listens"
 metrics_port="$(sed -n 's|^springblend-server metrics on http://127.0.0.1:\([0-9]*\)/metrics$|\1|p' "$work/server.out")"
-grep -q "springblend-server $version listening on" "$work/server.log" || fail "the start-up log line has no version"
+grep -q "springblend-server $version serving on" "$work/server.log" || fail "the start-up log line has no version"
 "$work/consumer/consumer" "127.0.0.1:$port" "$data/cylinder" "$version" || fail "the consumer"
 
 echo "== springblend_build_info"
