@@ -118,7 +118,7 @@ std::string SerializeWithName(const CharacterData& d, const std::string& name) {
       w.PutBytes(t.inbetweens[i].data(), sizeof(double) * static_cast<size_t>(t.inbetweens[i].size()));
     }
     w.Put<std::uint8_t>(t.mask.empty() ? 0 : 1);
-    w.PutBytes(t.mask.data(), sizeof(double) * t.mask.size());
+    if (!t.mask.empty()) w.PutBytes(t.mask.data(), sizeof(double) * t.mask.size());  // data() may be null
     w.Put<std::uint32_t>(static_cast<std::uint32_t>(t.combination.size()));
     for (const auto& driver : t.combination) w.PutString(driver);
   }
