@@ -25,6 +25,9 @@ namespace {
 constexpr char kFileMagic[8] = {'S', 'B', 'C', 'H', 'A', 'R', '0', '1'};
 // After the shapes of a production rig (in-betweens, masks, combinations); plain characters end before it.
 constexpr char kRigMarker[8] = {'S', 'B', 'R', 'I', 'G', '0', '0', '1'};
+// Build options beyond the defaults that change the solved frames (today: no target paths). Written only when
+// some differs, so a character with default options keeps the bytes (and id) it always had.
+constexpr char kOptionsMarker[8] = {'S', 'B', 'O', 'P', 'T', '0', '0', '1'};
 
 // Little-endian byte writer/reader for the canonical form (x86-64 and aarch64 are little-endian).
 class Writer {
@@ -109,18 +112,23 @@ std::string SerializeWithName(const CharacterData& d, const std::string& name) {
   const auto vertices = d.shapes.empty() ? 0 : d.shapes[0].rows();
   w.Put<std::uint32_t>(static_cast<std::uint32_t>(vertices));
   for (const auto& s : d.shapes) w.PutBytes(s.data(), sizeof(double) * static_cast<size_t>(s.size()));
-  if (d.target_rigs.empty()) return w.Take();  // a plain character: the bytes (and id) it always had
-  w.PutBytes(kRigMarker, sizeof(kRigMarker));
-  for (const TargetRigData& t : d.target_rigs) {
-    w.Put<std::uint32_t>(static_cast<std::uint32_t>(t.inbetween_weights.size()));
-    for (size_t i = 0; i < t.inbetween_weights.size(); ++i) {
-      w.Put<double>(t.inbetween_weights[i]);
-      w.PutBytes(t.inbetweens[i].data(), sizeof(double) * static_cast<size_t>(t.inbetweens[i].size()));
+  if (!d.target_rigs.empty()) {
+    w.PutBytes(kRigMarker, sizeof(kRigMarker));
+    for (const TargetRigData& t : d.target_rigs) {
+      w.Put<std::uint32_t>(static_cast<std::uint32_t>(t.inbetween_weights.size()));
+      for (size_t i = 0; i < t.inbetween_weights.size(); ++i) {
+        w.Put<double>(t.inbetween_weights[i]);
+        w.PutBytes(t.inbetweens[i].data(), sizeof(double) * static_cast<size_t>(t.inbetweens[i].size()));
+      }
+      w.Put<std::uint8_t>(t.mask.empty() ? 0 : 1);
+      if (!t.mask.empty()) w.PutBytes(t.mask.data(), sizeof(double) * t.mask.size());  // data() may be null
+      w.Put<std::uint32_t>(static_cast<std::uint32_t>(t.combination.size()));
+      for (const auto& driver : t.combination) w.PutString(driver);
     }
-    w.Put<std::uint8_t>(t.mask.empty() ? 0 : 1);
-    if (!t.mask.empty()) w.PutBytes(t.mask.data(), sizeof(double) * t.mask.size());  // data() may be null
-    w.Put<std::uint32_t>(static_cast<std::uint32_t>(t.combination.size()));
-    for (const auto& driver : t.combination) w.PutString(driver);
+  }
+  if (!o.target_paths) {
+    w.PutBytes(kOptionsMarker, sizeof(kOptionsMarker));
+    w.Put<std::uint8_t>(0);  // target_paths
   }
   return w.Take();
 }
@@ -187,10 +195,9 @@ CharacterData Deserialize(const std::string& bytes) {
     r.GetBytes(p.data(), sizeof(double) * 3 * static_cast<size_t>(vertices));
     d.shapes.push_back(std::move(p));
   }
-  if (!r.Done()) {
-    char marker[sizeof(kRigMarker)];
-    r.GetBytes(marker, sizeof(marker));
-    if (std::memcmp(marker, kRigMarker, sizeof(marker)) != 0) throw Error(ErrorCode::kInvalidInput, "character data has trailing bytes");
+  char marker[sizeof(kRigMarker)] = {};
+  if (!r.Done()) r.GetBytes(marker, sizeof(marker));
+  if (std::memcmp(marker, kRigMarker, sizeof(marker)) == 0) {
     for (std::uint32_t t = 0; t < targets; ++t) {
       TargetRigData rig;
       const auto inbetweens = r.Get<std::uint32_t>();
@@ -212,6 +219,13 @@ CharacterData Deserialize(const std::string& bytes) {
       for (std::uint32_t i = 0; i < drivers; ++i) rig.combination.push_back(r.GetString());
       d.target_rigs.push_back(std::move(rig));
     }
+    std::memset(marker, 0, sizeof(marker));
+    if (!r.Done()) r.GetBytes(marker, sizeof(marker));
+  }
+  if (std::memcmp(marker, kOptionsMarker, sizeof(marker)) == 0) {
+    d.options.target_paths = r.Get<std::uint8_t>() != 0;
+  } else if (marker[0] != 0) {
+    throw Error(ErrorCode::kInvalidInput, "character data has trailing bytes");
   }
   if (!r.Done()) throw Error(ErrorCode::kInvalidInput, "character data has trailing bytes");
   return d;

@@ -33,6 +33,27 @@ CharacterData Tetrahedron(double bending) {
   return d;
 }
 
+// A build option that changes the solved frames (no target paths: other starts, so possibly other equilibria)
+// is part of the id and of the cache file: a replica that rebuilds the character from disk builds the same rig.
+TEST(StoreFile, TheIdAndTheCacheFileKeepBuildOptionsThatChangeFrames) {
+  CharacterData with = Tetrahedron(1.0), without = Tetrahedron(1.0);
+  without.options.target_paths = false;
+  EXPECT_NE(ContentId(with), ContentId(without));
+  EXPECT_FALSE(Deserialize(Serialize(without)).options.target_paths);
+  EXPECT_TRUE(Deserialize(Serialize(with)).options.target_paths);
+  testing::TempDir dir;
+  std::string id;
+  {
+    CharacterStore store({dir.path().string(), 4LL << 30});
+    id = store.Put(without).first->id;
+  }
+  CharacterStore restarted({dir.path().string(), 4LL << 30});
+  const auto entry = restarted.Get(id);
+  ASSERT_TRUE(entry);
+  EXPECT_FALSE(entry->rig->options().target_paths);
+  EXPECT_EQ(entry->rig->summary().path_samples, 0);
+}
+
 TEST(StoreThreads, PutGetListDeleteFromManyThreadsUnderATinyBudget) {
   testing::TempDir dir;
   CharacterStore store({dir.path().string(), 1});  // 1 byte: every insertion evicts the others
