@@ -406,16 +406,19 @@ class InteractiveReactor final : public grpc::ServerBidiReactor<grpc::ByteBuffer
       } else {
         FinishIfDone(lock);
       }
+      Act(lock);
       return;
     }
     if (!Parse(bytes_, &incoming_)) {
       Refuse(lock, Unparseable("InteractiveRequest"));
+      Act(lock);
       return;
     }
     bytes_.Clear();
     if (!started_) {
       if (!incoming_.has_start()) {
         Refuse(lock, BadMessage("the first message must be a start message"));
+        Act(lock);
         return;
       }
       started_ = true;
@@ -429,11 +432,26 @@ class InteractiveReactor final : public grpc::ServerBidiReactor<grpc::ByteBuffer
       pending_ = Job{std::move(*incoming_.mutable_frame()), index};
     } else {
       Refuse(lock, BadMessage("only the first message may be a start message"));
+      Act(lock);
       return;
     }
-    if (!Schedule(lock)) return;
+    if (!Schedule(lock)) {
+      Act(lock);
+      return;
+    }
+    // Nothing may finish the session while the next read is being started (the reactor must outlive the
+    // call); once it is outstanding, gRPC holds the reactor until it completes.
+    starting_read_ = true;
     lock.unlock();
     StartRead(&bytes_);
+    lock.lock();
+    starting_read_ = false;
+    if (refused_) {
+      FinishIfIdle(lock, *refused_);
+    } else if (cancelled_) {
+      FinishIfIdle(lock, StoppedStatus(*watch_, "the client cancelled the session"));
+    }
+    Act(lock);
   }
 
   void OnWriteDone(bool ok) override {
@@ -451,12 +469,14 @@ class InteractiveReactor final : public grpc::ServerBidiReactor<grpc::ByteBuffer
       Schedule(lock);
       FinishIfDone(lock);
     }
+    Act(lock);
   }
   void OnCancel() override {
     std::unique_lock lock(mutex_);
     cancelled_ = true;
     Clear();
     FinishIfIdle(lock, StoppedStatus(*watch_, "the client cancelled the session"));
+    Act(lock);
   }
   void OnDone() override {
     watch_->Done();
@@ -473,14 +493,28 @@ class InteractiveReactor final : public grpc::ServerBidiReactor<grpc::ByteBuffer
     std::uint32_t index = 0;
   };
 
-  // All with mutex_ held. Finish is called exactly once, and never while a job runs or a write is in flight.
+  // All with mutex_ held. The session is finished exactly once, never while a job runs, a write is in flight
+  // or a read is being started; the gRPC calls (Finish, StartWrite) are made by Act, after the lock is let go,
+  // as the last thing a callback or job does: after them the reactor may be gone.
   void FinishLocked(std::unique_lock<std::mutex>&, const grpc::Status& status) {
     if (finished_) return;
     finished_ = true;
     context_.metrics.CountRequest("Interactive", CodeName(status.error_code()));
-    Finish(status);
+    finish_due_ = status;
   }
-  bool Idle() const { return !solving_ && !previewing_ && !writing_; }
+  void Act(std::unique_lock<std::mutex>& lock) {
+    std::optional<grpc::Status> finish = std::move(finish_due_);
+    finish_due_.reset();
+    const bool write = write_due_;
+    write_due_ = false;
+    lock.unlock();
+    if (finish) {
+      Finish(*finish);
+    } else if (write) {
+      StartWrite(&out_);
+    }
+  }
+  bool Idle() const { return !solving_ && !previewing_ && !writing_ && !starting_read_; }
   void FinishIfIdle(std::unique_lock<std::mutex>& lock, const grpc::Status& status) {
     if (Idle()) FinishLocked(lock, status);
   }
@@ -547,7 +581,7 @@ class InteractiveReactor final : public grpc::ServerBidiReactor<grpc::ByteBuffer
 
   // Starts the next write, if none is in flight: the outbox's answer of the lower frame index first; an answer
   // older than one already sent is dropped.
-  void Flush(std::unique_lock<std::mutex>& lock) {
+  void Flush(std::unique_lock<std::mutex>&) {
     if (writing_ || cancelled_ || refused_ || finished_) return;
     const auto stale = [this](const std::optional<Answer>& a, bool solved) {
       if (!a || !sent_any_) return false;
@@ -575,15 +609,19 @@ class InteractiveReactor final : public grpc::ServerBidiReactor<grpc::ByteBuffer
     }
     next->reset();
     writing_ = true;
+    write_due_ = true;
     watch_->Waiting();
-    lock.unlock();
-    StartWrite(&out_);
-    lock.lock();
   }
 
-  // After a job: store its answer, write, schedule more, or end the session.
+  // After a job, its last act (with the lock held; lets it go): store its answer, write, schedule more, or end
+  // the session.
   void Finished(std::unique_lock<std::mutex>& lock, const grpc::Status& status, std::optional<Answer> answer,
                 bool solved) {
+    Store(lock, status, std::move(answer), solved);
+    Act(lock);
+  }
+  void Store(std::unique_lock<std::mutex>& lock, const grpc::Status& status, std::optional<Answer> answer,
+             bool solved) {
     if (!status.ok()) {
       Fail(lock, status);
       return;
@@ -729,7 +767,9 @@ class InteractiveReactor final : public grpc::ServerBidiReactor<grpc::ByteBuffer
   std::atomic<std::uint32_t> newest_{0};  // the newest frame's index, read by a running solve's stop check
   std::mutex mutex_;  // guards the session's state below and above
   bool started_ = false, setup_requested_ = false, ready_ = false, solving_ = false, previewing_ = false,
-       writing_ = false, reads_done_ = false, cancelled_ = false, finished_ = false;
+       writing_ = false, reads_done_ = false, cancelled_ = false, finished_ = false, starting_read_ = false,
+       write_due_ = false;
+  std::optional<grpc::Status> finish_due_;  // Act's to do
 };
 
 }  // namespace
