@@ -556,27 +556,19 @@ class InteractiveReactor final : public grpc::ServerBidiReactor<grpc::ByteBuffer
       return true;
     }
     if (!ready_) return true;  // the setup job is still running; it schedules again when done
-    if (pending_ && !solving_) {
-      solving_ = true;
-      if (!context_.pool.SubmitContinuation([this] { RunSolve(); })) {
-        solving_ = false;
-        Clear();
-        refused_ = kShuttingDown;
-        FinishIfIdle(lock, kShuttingDown);
-        return false;
-      }
-    }
-    if (to_preview_ && !previewing_) {
-      previewing_ = true;
-      if (!context_.pool.SubmitContinuation([this] { RunPreview(); })) {
-        previewing_ = false;
-        Clear();
-        refused_ = kShuttingDown;
-        FinishIfIdle(lock, kShuttingDown);
-        return false;
-      }
-    }
+    if (pending_ && !solving_ && !Submit(lock, &solving_, &InteractiveReactor::RunSolve)) return false;
+    if (to_preview_ && !previewing_ && !Submit(lock, &previewing_, &InteractiveReactor::RunPreview)) return false;
     return true;
+  }
+  // Queues one more job of the session, marking it running; false (the session ends) when the pool refuses.
+  bool Submit(std::unique_lock<std::mutex>& lock, bool* running, void (InteractiveReactor::*job)()) {
+    *running = true;
+    if (context_.pool.SubmitContinuation([this, job] { (this->*job)(); })) return true;
+    *running = false;
+    Clear();
+    refused_ = kShuttingDown;
+    FinishIfIdle(lock, kShuttingDown);
+    return false;
   }
 
   // Starts the next write, if none is in flight: the outbox's answer of the lower frame index first; an answer

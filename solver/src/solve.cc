@@ -166,8 +166,10 @@ SolveSummary Solver::Impl::Solve(const Frame& frame, Points* positions, const st
   SolveSummary summary;
   const int n = rig.num_vertices();
   const double diagonal = rig.summary().bounding_box_diagonal;
-  const Points linear = LinearBlendAll(rig, frame.weights);  // validates the weights
   ValidateFrame(rig, frame, colliders_.size());
+  // Everything below blends per sculpted shape (in-betweens, combinations): their weights, once.
+  const std::vector<double> shape_weights = rig.ShapeWeights(frame.weights);
+  const Points linear = internal::LinearBlendShapes(rig, shape_weights);
   summary.pins = static_cast<int>(frame.pins.size());
   if (options_.linear) {
     *positions = linear.topRows(rig.num_surface_vertices());
@@ -177,13 +179,12 @@ SolveSummary Solver::Impl::Solve(const Frame& frame, Points* positions, const st
     return summary;
   }
   std::vector<double> rest_lengths;
-  BlendRestLengths(rig, frame.weights, &rest_lengths);
+  internal::BlendRestLengths(rig, shape_weights, &rest_lengths);
   springs_.SetRestLengths(std::move(rest_lengths), rig.spring_kind(), internal::KindStiffness(rig.options()),
                           internal::StiffnessFloor(rig));
 
   std::vector<std::pair<int, Eigen::Vector3d>> pins;
   for (const Pin& pin : frame.pins) pins.emplace_back(pin.vertex, pin.position);
-  const std::vector<double> shape_weights = rig.ShapeWeights(frame.weights);
   const internal::FrameConditions conditions = internal::ConditionsOf(rig, shape_weights, linear, pins);
   const BoundaryMode mode = conditions.mode;
   StartOf(linear, shape_weights, conditions.motion, &x_);
@@ -279,13 +280,15 @@ SolveSummary Solver::Solve(const Frame& frame, Points* positions, const std::fun
 }
 Points Solver::Start(const std::vector<double>& weights) const {
   const Rig& rig = *impl_->rig_;
-  const Points linear = LinearBlendAll(rig, weights);
+  ValidateWeights(rig, weights);
+  const std::vector<double> shape_weights = rig.ShapeWeights(weights);
+  const Points linear = internal::LinearBlendShapes(rig, shape_weights);
   std::optional<internal::AnchorMotion> motion;
   if (rig.boundary_mode() == BoundaryMode::kAnchored) {
-    motion = internal::BlendAnchorMotions(rig.internals().anchor_motions, rig.ShapeWeights(weights));
+    motion = internal::BlendAnchorMotions(rig.internals().anchor_motions, shape_weights);
   }
   Eigen::VectorXd x;
-  impl_->StartOf(linear, rig.ShapeWeights(weights), motion, &x);
+  impl_->StartOf(linear, shape_weights, motion, &x);
   Points start(rig.num_vertices(), 3);
   for (int v = 0; v < rig.num_vertices(); ++v) start.row(v) = x.segment<3>(3 * v).transpose();
   return start;
