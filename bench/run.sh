@@ -1,10 +1,12 @@
 #!/usr/bin/env bash
 # The benchmark in one command: installs the dependencies (Debian 12), builds the bench configuration, runs
 # springblend-bench (every row whose meshes are present; per row the three solve methods side by side and the
-# direct-Newton baseline on the same frames), the slider drag through a server (bench/slider.py) and the
-# service throughput script, and writes bench-results/{bench.md,bench.json,ms_per_step.png,slider.md,
-# slider.json,service.md}.
+# direct-Newton baseline on the same frames), a perf profile of the face's solve (bench/profile.sh), the slider
+# drag through a server (bench/slider.py) and the service throughput script, and writes
+# bench-results/{bench.md,bench.json,ms_per_step.png,profile.md,slider.md,slider.json,service.md}.
 #   bash bench/run.sh [springblend-bench options, e.g. --rows face,horse --steps 36 --shared DIR]
+# Without --steps (or --quick) the sweep has 18 frames (17 solved per pass), so that the whole run, every row
+# with all three methods, the baseline and the reference, takes about 40 minutes on two cores.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 bash deploy/install-deps.sh
@@ -21,8 +23,13 @@ for ((i = 0; i < ${#args[@]}; i++)); do
     --shared=*) shared="${args[i]#--shared=}" ;;
   esac
 done
+defaults=(--steps 18)
+for arg in "${args[@]}"; do
+  case "$arg" in --steps | --steps=* | --quick) defaults=() ;; esac
+done
 status=0
-build/bench/bench/springblend-bench --out bench-results "$@" || status=$?
+build/bench/bench/springblend-bench --out bench-results "${defaults[@]}" "$@" || status=$?
+bash bench/profile.sh build/bench bench-results face 12 newton || status=$?
 /usr/bin/python3 bench/slider.py --build build/bench --out bench-results --shared "$shared" || status=$?
 bash bench/service.sh build/bench bench-results
 exit "$status"
