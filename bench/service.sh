@@ -93,5 +93,7 @@ print(f'{100 * (float(one) * 1000 - local_ms) / local_ms:.1f} %' if one else '-'
   echo
   echo "Service overhead in one run (one stream): the client's time from the call to the last frame against the"
   echo "sum of the server's per-frame solve times (request decoding, queueing, encoding, transfer and the"
-  echo "client's decoding, with the solve itself taken out): $served_overhead."
+  echo "client's decoding, with the solve itself taken out): $served_overhead. Frames are stateless, so the"
+  echo "server's workers solve several frames of one stream at once: where the solve times add up to more than"
+  echo "the wall time this is negative, the gain of that parallelism rather than an overhead."
 } | tee "$out/service.md"
