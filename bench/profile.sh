@@ -5,13 +5,16 @@
 # kernels it calls; the triangular solves with the factor; the spring passes; the Hessian products of the
 # conjugate gradients; threading and the kernel; the rest), and the top symbols. Skips cleanly (exit 0, a line
 # in profile.md) when perf is missing or not permitted, or the row's meshes are absent.
-#   bash bench/profile.sh BUILD_DIR OUT_DIR [ROW [STEPS [METHOD]]]      (default: face 12 newton)
+#   bash bench/profile.sh BUILD_DIR OUT_DIR [ROW [STEPS [METHOD [SHARED]]]]
+#   (default: face 12 newton, and springblend-bench's own default for the shared meshes)
 set -euo pipefail
 build="${1:?build dir}"
 out="${2:?output dir}"
 row="${3:-face}"
 steps="${4:-12}"
 method="${5:-newton}"
+shared_args=()
+[ -n "${6:-}" ] && shared_args=(--shared "$6")
 mkdir -p "$out"
 report="$out/profile.md"
 skip() {
@@ -23,7 +26,7 @@ perf record -q -o /dev/null -- true > /dev/null 2>&1 || skip "perf record is not
 work="$(mktemp -d)"
 trap 'rm -rf "$work"' EXIT
 log="$work/bench.log"
-"$build/bench/springblend-bench" --rows "$row" --steps "$steps" --method "$method" --profile --out "$work/out" \
+"$build/bench/springblend-bench" --rows "$row" --steps "$steps" --method "$method" "${shared_args[@]}" --profile --out "$work/out" \
   > /dev/null 2> "$log" &
 bench=$!
 # Wait for the rig (the build is not what is profiled), then record until the sweep ends.

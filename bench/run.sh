@@ -14,22 +14,20 @@ cmake -S . -B build/bench -G Ninja -DCMAKE_BUILD_TYPE=Release -DSPRINGBLEND_BUIL
   -DSPRINGBLEND_BUILD_TESTS=OFF > /dev/null
 cmake --build build/bench --target springblend-bench springblend springblend-server springblend-tetgen \
   springblend_python -j "$(nproc)"
-# The slider drag reads the shared meshes from the same place as springblend-bench.
+# The profile and the slider drag read the shared meshes from the same place as springblend-bench.
 shared="$(cd .. && pwd)/shared/meshes"
+defaults=(--steps 18)
 args=("$@")
 for ((i = 0; i < ${#args[@]}; i++)); do
   case "${args[i]}" in
     --shared) shared="${args[i + 1]:-$shared}" ;;
     --shared=*) shared="${args[i]#--shared=}" ;;
+    --steps | --steps=* | --quick) defaults=() ;;
   esac
-done
-defaults=(--steps 18)
-for arg in "${args[@]}"; do
-  case "$arg" in --steps | --steps=* | --quick) defaults=() ;; esac
 done
 status=0
 build/bench/bench/springblend-bench --out bench-results "${defaults[@]}" "$@" || status=$?
-bash bench/profile.sh build/bench bench-results face 12 newton || status=$?
+bash bench/profile.sh build/bench bench-results face 12 newton "$shared" || status=$?
 /usr/bin/python3 bench/slider.py --build build/bench --out bench-results --shared "$shared" || status=$?
 bash bench/service.sh build/bench bench-results
 exit "$status"
