@@ -7,12 +7,12 @@
 #include <unistd.h>
 
 #include <cerrno>
+#include <chrono>
 #include <cstring>
 #include <filesystem>
 #include <fmt/format.h>
 #include <fstream>
 #include <random>
-#include <sstream>
 #include <unordered_set>
 
 #include "springblend/error.h"
@@ -22,7 +22,10 @@
 namespace springblend::server {
 namespace {
 
-constexpr char kFileMagic[8] = {'S', 'B', 'C', 'H', 'A', 'R', '0', '1'};
+// Cache files (the layout is in character_store.h). Version 1 is only read: files of older servers.
+constexpr char kFileMagicV1[8] = {'S', 'B', 'C', 'H', 'A', 'R', '0', '1'};
+constexpr char kFileMagic[8] = {'S', 'B', 'C', 'H', 'A', 'R', '0', '2'};
+constexpr size_t kDigestBytes = 32;  // SHA-256
 // After the shapes of a production rig (in-betweens, masks, combinations); plain characters end before it.
 constexpr char kRigMarker[8] = {'S', 'B', 'R', 'I', 'G', '0', '0', '1'};
 // Build options beyond the defaults that change the solved frames (today: no target paths). Written only when
@@ -87,6 +90,95 @@ std::string Sha256(const std::string& bytes) {
   unsigned int length = 0;
   EVP_Digest(bytes.data(), bytes.size(), digest, &length, EVP_sha256(), nullptr);
   return std::string(reinterpret_cast<const char*>(digest), length);
+}
+
+// 2 or 1 for a cache file's magic, 0 for anything else.
+int FileVersion(const char (&magic)[sizeof(kFileMagic)]) {
+  if (std::memcmp(magic, kFileMagic, sizeof(magic)) == 0) return 2;
+  if (std::memcmp(magic, kFileMagicV1, sizeof(magic)) == 0) return 1;
+  return 0;
+}
+
+// Where the payload (whose first field is the name) starts in a cache file of that version.
+size_t PayloadOffset(int version) {
+  return sizeof(kFileMagic) + kDigestBytes + (version >= 2 ? sizeof(std::uint64_t) : 0);
+}
+
+bool ReadExactly(std::istream& in, std::uint64_t n, std::string* out) {
+  out->resize(n);  // n is at most what is left of the file: the callers check it against its size
+  return static_cast<bool>(in.read(out->data(), static_cast<std::streamsize>(n)));
+}
+
+// A cache file's parts, each checked against its checksum; false (and why) when the file is not whole. Read
+// part by part, so the precomputed paths (possibly the larger part) are held once.
+bool ReadCacheFile(std::istream& in, std::string* payload, std::optional<std::string>* precomputed, std::string* why) {
+  in.seekg(0, std::ios::end);
+  const std::uint64_t size = static_cast<std::uint64_t>(std::max<std::streamoff>(0, in.tellg()));
+  in.seekg(0);
+  char magic[sizeof(kFileMagic)];
+  const int version = in.read(magic, sizeof(magic)) ? FileVersion(magic) : 0;
+  if (version == 0) {
+    *why = "not a cache file";
+    return false;
+  }
+  const size_t offset = PayloadOffset(version);
+  std::string digest;
+  std::uint64_t length = size > offset ? size - offset : 0;  // version 1: the rest of the file
+  if (size <= offset || !ReadExactly(in, kDigestBytes, &digest) ||
+      (version >= 2 && (!in.read(reinterpret_cast<char*>(&length), sizeof(length)) ||
+                        size - offset < kDigestBytes || length > size - offset - kDigestBytes))) {
+    *why = "truncated";
+    return false;
+  }
+  if (length == 0 || !ReadExactly(in, length, payload) || Sha256(*payload) != digest) {
+    *why = "the character's checksum does not match";
+    return false;
+  }
+  if (version == 1) return true;
+  std::string bytes;
+  if (!ReadExactly(in, kDigestBytes, &digest) || !ReadExactly(in, size - offset - length - kDigestBytes, &bytes) ||
+      Sha256(bytes) != digest) {
+    *why = "the precomputed paths' checksum does not match";
+    return false;
+  }
+  *precomputed = std::move(bytes);
+  return true;
+}
+
+bool WriteAll(int fd, std::string_view bytes) {
+  while (!bytes.empty()) {
+    const ssize_t n = ::write(fd, bytes.data(), bytes.size());
+    if (n <= 0) return false;
+    bytes.remove_prefix(static_cast<size_t>(n));
+  }
+  return true;
+}
+
+// The solver's note on precomputed paths it did not use (why), or a plain word when it left none.
+std::string UnusedPathsNote(const RigSummary& summary) {
+  for (const auto& note : summary.notes) {
+    if (note.find("precomputed") != std::string::npos) return note;
+  }
+  return "the precomputed target paths were not used";
+}
+
+bool IsCancelled(const std::exception_ptr& error) {
+  try {
+    std::rethrow_exception(error);
+  } catch (const Error& e) {
+    return e.code() == ErrorCode::kCancelled;
+  } catch (...) {
+    return false;
+  }
+}
+
+// Waits for another caller's build of the character; throws Error(kCancelled) when this caller's `stop` says
+// stop first (asked every 20 ms).
+void WaitFor(const std::shared_future<std::shared_ptr<const CharacterStore::Entry>>& result, const StopCheck& stop) {
+  if (!stop) return result.wait();
+  while (result.wait_for(std::chrono::milliseconds(20)) != std::future_status::ready) {
+    if (stop()) throw Error(ErrorCode::kCancelled, "stopped waiting for the character's build");
+  }
 }
 
 std::string Hex(const std::string& bytes) {
@@ -251,7 +343,8 @@ std::string CharacterStore::PathOf(const std::string& id) const {
   return (std::filesystem::path(options_.directory) / (id + ".sbchar")).string();
 }
 
-void CharacterStore::WriteFile(const std::string& id, const std::string& payload) const {
+void CharacterStore::WriteFile(const std::string& id, const std::string& payload,
+                               const std::string& precomputed) const {
   if (options_.directory.empty()) return;
   // Atomic: a uniquely named temporary file, flushed to disk, then renamed over the final name. Readers see
   // the whole file or none; a crash leaves at most a temporary file, which is never read, and which the next
@@ -278,16 +371,13 @@ void CharacterStore::WriteFile(const std::string& id, const std::string& payload
     }
   }
   if (fd < 0) return;
-  std::string bytes(kFileMagic, sizeof(kFileMagic));
-  bytes += Sha256(payload);
-  bytes += payload;
-  size_t written = 0;
-  while (written < bytes.size()) {
-    const ssize_t n = ::write(fd, bytes.data() + written, bytes.size() - written);
-    if (n <= 0) break;
-    written += static_cast<size_t>(n);
-  }
-  const bool ok = written == bytes.size() && ::fsync(fd) == 0;
+  const std::uint64_t length = payload.size();
+  std::string header(kFileMagic, sizeof(kFileMagic));
+  header += Sha256(payload);
+  header.append(reinterpret_cast<const char*>(&length), sizeof(length));
+  // The parts one after the other rather than joined: the paths may be hundreds of megabytes.
+  const bool ok = WriteAll(fd, header) && WriteAll(fd, payload) && WriteAll(fd, Sha256(precomputed)) &&
+                  WriteAll(fd, precomputed) && ::fsync(fd) == 0;
   if (!ok || std::rename(temporary.c_str(), path.c_str()) != 0) std::remove(temporary.c_str());
   ::close(fd);  // releases the lock, after the rename
 }
@@ -325,26 +415,21 @@ CharacterStore::Cleanup CharacterStore::RemoveStaleTemporaries() {
   return cleanup;
 }
 
-std::optional<std::string> CharacterStore::ReadFile(const std::string& id) {
+std::optional<CharacterStore::CacheFile> CharacterStore::ReadFile(const std::string& id) {
   if (options_.directory.empty()) return std::nullopt;
   std::ifstream in(PathOf(id), std::ios::binary);
   if (!in) return std::nullopt;
-  std::stringstream buffer;
-  buffer << in.rdbuf();
-  const std::string bytes = buffer.str();
-  const size_t header = sizeof(kFileMagic) + 32;
-  bool ok = bytes.size() > header && std::memcmp(bytes.data(), kFileMagic, sizeof(kFileMagic)) == 0;
-  std::string payload;
-  if (ok) {
-    payload = bytes.substr(header);
-    ok = Sha256(payload) == bytes.substr(sizeof(kFileMagic), 32);
-  }
+  CacheFile file;
+  std::string why;
+  bool ok = ReadCacheFile(in, &file.payload, &file.precomputed, &why);
   if (ok) {
     try {
-      ok = ContentId(Deserialize(payload)) == id;
+      file.data = Deserialize(file.payload);
+      ok = ContentId(file.data) == id;
     } catch (const Error&) {
       ok = false;
     }
+    if (!ok) why = "the content does not match its id";
   }
   if (!ok) {
     // Never serve a corrupt file: drop it; the next upload writes it anew.
@@ -353,15 +438,19 @@ std::optional<std::string> CharacterStore::ReadFile(const std::string& id) {
       ++stats_.corrupt_files;
       verified_.erase(id);
     }
+    in.clear();
+    in.seekg(0, std::ios::end);
+    const std::streamoff size = in.tellg();
     const bool removed = std::remove(PathOf(id).c_str()) == 0;
-    spdlog::warn("cache file {} is corrupt ({} bytes, checksum or content does not match its id): {}", PathOf(id),
-                 bytes.size(), removed ? "removed" : "could not be removed");
+    spdlog::warn("cache file {} is corrupt ({} bytes, {}): {}", PathOf(id), size, why,
+                 removed ? "removed" : "could not be removed");
     return std::nullopt;
   }
-  return payload;
+  return file;
 }
 
-std::shared_ptr<const CharacterStore::Entry> CharacterStore::Build(const std::string& id, const CharacterData& data) {
+std::shared_ptr<const CharacterStore::Entry> CharacterStore::Build(const std::string& id, const CharacterData& data,
+                                                                   const RigBuildControl& control) {
   {
     std::lock_guard lock(mutex_);
     ++stats_.builds;
@@ -382,30 +471,25 @@ std::shared_ptr<const CharacterStore::Entry> CharacterStore::Build(const std::st
   auto entry = std::make_shared<Entry>();
   entry->id = id;
   entry->name = data.name;
-  if (data.target_rigs.empty()) {
-    std::vector<TriangleMesh> targets;
-    for (size_t t = 0; t < data.target_names.size(); ++t) {
-      targets.push_back(shape(data.shapes[t + 1], data.target_names[t], fmt::format("target '{}'", data.target_names[t])));
-    }
-    entry->rig = Rig::Build(std::move(rest), std::move(targets), data.options);
-  } else {
-    std::vector<TargetSpec> targets;
-    for (size_t t = 0; t < data.target_names.size(); ++t) {
-      const std::string& name = data.target_names[t];
+  // Plain targets too are specs (name and mesh), as Rig::Build makes them: only that overload takes a control.
+  std::vector<TargetSpec> targets;
+  for (size_t t = 0; t < data.target_names.size(); ++t) {
+    const std::string& name = data.target_names[t];
+    TargetSpec spec;
+    spec.name = name;
+    spec.mesh = shape(data.shapes[t + 1], name, fmt::format("target '{}'", name));
+    if (!data.target_rigs.empty()) {
       const TargetRigData& rig = data.target_rigs[t];
-      TargetSpec spec;
-      spec.name = name;
-      spec.mesh = shape(data.shapes[t + 1], name, fmt::format("target '{}'", name));
       for (size_t i = 0; i < rig.inbetweens.size(); ++i) {
         spec.inbetweens.push_back({rig.inbetween_weights[i],
                                    shape(rig.inbetweens[i], name, fmt::format("target '{}': inbetweens[{}]", name, i))});
       }
       spec.mask = rig.mask;
       spec.combination = rig.combination;
-      targets.push_back(std::move(spec));
     }
-    entry->rig = Rig::Build(std::move(rest), std::move(targets), data.options);
+    targets.push_back(std::move(spec));
   }
+  entry->rig = Rig::Build(std::move(rest), std::move(targets), data.options, control);
   entry->bytes = EstimateBytes(*entry->rig);
   return entry;
 }
@@ -427,17 +511,43 @@ void CharacterStore::Insert(std::shared_ptr<const Entry> entry) {
   stats_.characters = static_cast<std::int64_t>(entries_.size());
 }
 
-std::pair<std::shared_ptr<const CharacterStore::Entry>, bool> CharacterStore::Put(const CharacterData& data) {
-  return Acquire(ContentId(data), &data);
+std::shared_ptr<const CharacterStore::Entry> CharacterStore::Rebuild(const std::string& id, const CacheFile& file,
+                                                                     const StopCheck& stop) {
+  const std::string path = PathOf(id);
+  if (!file.precomputed) spdlog::info("cache file {} has no precomputed paths (version 1): rebuilding them", path);
+  RigBuildControl control;
+  control.stop = stop;
+  control.precomputed = file.precomputed ? &*file.precomputed : nullptr;
+  auto entry = Build(id, file.data, control);
+  const RigSummary& summary = entry->rig->summary();
+  const bool unused = file.precomputed && file.data.options.target_paths && !summary.paths_loaded;
+  if (unused) spdlog::warn("cache file {}: {}; rewriting the file", path, UnusedPathsNote(summary));
+  spdlog::info("rebuilt {} from the cache directory in {:.0f} ms, target paths {}", id.substr(0, 12),
+               summary.precompute_ms,
+               summary.paths_loaded              ? "loaded from the file"
+               : file.data.options.target_paths ? fmt::format("solved ({:.0f} ms)", summary.path_ms)
+                                                 : std::string("off"));
+  // Written once, so the next restart (or another replica) loads what this one had to solve.
+  if (!file.precomputed || unused) WriteFile(id, file.payload, entry->rig->SavePrecomputed());
+  std::lock_guard lock(mutex_);
+  if (summary.paths_loaded) ++stats_.paths_loaded;
+  if (!file.precomputed || unused) ++stats_.upgraded_files;
+  return entry;
 }
 
-std::shared_ptr<const CharacterStore::Entry> CharacterStore::Get(const std::string& id) {
+std::pair<std::shared_ptr<const CharacterStore::Entry>, bool> CharacterStore::Put(const CharacterData& data,
+                                                                                   const StopCheck& stop) {
+  return Acquire(ContentId(data), &data, stop);
+}
+
+std::shared_ptr<const CharacterStore::Entry> CharacterStore::Get(const std::string& id, const StopCheck& stop) {
   if (!ValidId(id)) return nullptr;
-  return Acquire(id, nullptr).first;
+  return Acquire(id, nullptr, stop).first;
 }
 
 std::pair<std::shared_ptr<const CharacterStore::Entry>, bool> CharacterStore::Acquire(const std::string& id,
-                                                                                       const CharacterData* data) {
+                                                                                       const CharacterData* data,
+                                                                                       const StopCheck& stop) {
   std::promise<std::shared_ptr<const Entry>> promise;
   std::shared_ptr<Flight> flight;
   {
@@ -450,11 +560,19 @@ std::pair<std::shared_ptr<const CharacterStore::Entry>, bool> CharacterStore::Ac
     }
     ++stats_.misses;
     if (auto other = building_.find(id); other != building_.end()) {
-      // Someone builds it now: wait for that build (it throws here too if it failed).
+      // Someone builds it now: wait for that build (it throws here too if it failed), unless this caller stops.
       auto result = other->second->result;
       lock.unlock();
-      auto entry = result.get();
-      if (!entry && data != nullptr) return Acquire(id, data);  // that was a Get that found no file
+      WaitFor(result, stop);
+      std::shared_ptr<const Entry> entry;
+      try {
+        entry = result.get();
+      } catch (const Error& e) {
+        // Its own caller stopped that build, and this one did not: build it anew (or join whoever does now).
+        if (e.code() != ErrorCode::kCancelled || (stop && stop())) throw;
+        return Acquire(id, data, stop);
+      }
+      if (!entry && data != nullptr) return Acquire(id, data, stop);  // that was a Get that found no file
       return {entry, true};
     }
     flight = std::make_shared<Flight>();
@@ -464,17 +582,22 @@ std::pair<std::shared_ptr<const CharacterStore::Entry>, bool> CharacterStore::Ac
   std::shared_ptr<const Entry> entry;
   bool known = true;
   try {
-    if (const auto payload = ReadFile(id)) {
-      entry = Build(id, Deserialize(*payload));
+    if (const auto file = ReadFile(id)) {
+      entry = Rebuild(id, *file, stop);
     } else if (data != nullptr) {
       known = false;
-      entry = Build(id, *data);  // throws Error for bad meshes; nothing is stored then
-      WriteFile(id, Serialize(*data));
+      RigBuildControl control;
+      control.stop = stop;
+      entry = Build(id, *data, control);  // throws Error for bad meshes, or when stopped; nothing is stored then
+      WriteFile(id, Serialize(*data), entry->rig->SavePrecomputed());
     }
   } catch (...) {
+    const bool cancelled = IsCancelled(std::current_exception());
+    if (cancelled) spdlog::info("the build of {} was stopped: nothing kept", id.substr(0, 12));
     {
       std::lock_guard lock(mutex_);
       building_.erase(id);
+      if (cancelled) ++stats_.cancelled_builds;
     }
     promise.set_exception(std::current_exception());
     throw;
@@ -530,10 +653,13 @@ std::vector<CharacterStore::Listed> CharacterStore::List() {
     }
     // The name is the payload's first field: read just the header, not the meshes.
     std::ifstream in(file.path(), std::ios::binary);
-    char header[sizeof(kFileMagic) + 32 + 4];
-    if (!in.read(header, sizeof(header)) || std::memcmp(header, kFileMagic, sizeof(kFileMagic)) != 0) continue;
+    char magic[sizeof(kFileMagic)];
+    const int version = in.read(magic, sizeof(magic)) ? FileVersion(magic) : 0;
     std::uint32_t length = 0;
-    std::memcpy(&length, header + sizeof(kFileMagic) + 32, 4);
+    if (version == 0 || !in.seekg(static_cast<std::streamoff>(PayloadOffset(version))) ||
+        !in.read(reinterpret_cast<char*>(&length), sizeof(length))) {
+      continue;
+    }
     std::string name(std::min<std::uint32_t>(length, 256), '\0');
     in.read(name.data(), static_cast<std::streamsize>(name.size()));
     out.push_back({id, name, nullptr});

@@ -1,10 +1,17 @@
 // The character cache: built rigs in memory (least recently used out first, within a byte budget) over a
 // directory of content-addressed upload files, so a restart, or another replica sharing the directory,
 // serves a known character without a re-upload. Ids are SHA-256 hex digests, never paths.
+//
+// A cache file, ID.sbchar (version 2), keeps what the rig is built from and what is costly to build again:
+//   "SBCHAR02" | SHA-256(payload) | u64 payload length | payload | SHA-256(precomputed) | precomputed
+// payload = Serialize(CharacterData) (the id is its hash without the name), precomputed = Rig::SavePrecomputed
+// (the target paths), which a rebuild from the file loads rather than solves. Version 1 ("SBCHAR01" |
+// SHA-256(payload) | payload) still loads; its paths are solved and the file is rewritten as version 2.
 #pragma once
 
 #include <cstdint>
 #include <filesystem>
+#include <functional>
 #include <future>
 #include <list>
 #include <memory>
@@ -52,7 +59,14 @@ struct StoreStats {
   std::int64_t hits = 0, misses = 0, evictions = 0, bytes = 0, characters = 0, rebuilds_from_disk = 0,
                corrupt_files = 0;
   std::int64_t builds = 0;  // rigs built (uploads and rebuilds, failed ones too): concurrent requests share one
+  std::int64_t paths_loaded = 0;     // rebuilds from the directory that loaded their target paths from the file
+  std::int64_t upgraded_files = 0;   // cache files rewritten because their paths were missing (v1) or did not fit
+  std::int64_t cancelled_builds = 0;  // builds their stop check ended
 };
+
+// Asked while a build runs (RigBuildControl::stop, on the building threads): true ends the build with
+// Error(kCancelled). Empty: never.
+using StopCheck = std::function<bool()>;
 
 class CharacterStore {
  public:
@@ -66,11 +80,14 @@ class CharacterStore {
   explicit CharacterStore(StoreOptions options);
 
   // Builds (or finds) the character. Returns the entry and whether it was already known. Concurrent Puts and
-  // Gets of one id share one build.
-  std::pair<std::shared_ptr<const Entry>, bool> Put(const CharacterData& data);
-  // From memory, else from the directory (rebuilding the rig); nullptr if unknown anywhere. Concurrent calls
-  // for one cold id share one rebuild.
-  std::shared_ptr<const Entry> Get(const std::string& id);
+  // Gets of one id share one build, which runs with the stop check of the caller that started it; a caller
+  // waiting for another's build stops waiting when its own check says so. When `stop` ends a build, it throws
+  // Error(kCancelled) and nothing is kept (no entry, no file); the callers waiting for that build who did not
+  // stop build it again themselves.
+  std::pair<std::shared_ptr<const Entry>, bool> Put(const CharacterData& data, const StopCheck& stop = {});
+  // From memory, else from the directory (rebuilding the rig, with the file's target paths); nullptr if unknown
+  // anywhere. Concurrent calls for one cold id share one rebuild, as Put's do.
+  std::shared_ptr<const Entry> Get(const std::string& id, const StopCheck& stop = {});
   // Built characters in memory, most recently used first, then those only in the cache directory (listed by
   // id and name without building them: `entry` is null). A file is checked (checksum, id) the first time it
   // is listed; a corrupt one is removed, logged, and not listed.
@@ -97,13 +114,24 @@ class CharacterStore {
   static bool ValidId(const std::string& id);
 
  private:
-  std::shared_ptr<const Entry> Build(const std::string& id, const CharacterData& data);
+  // A cache file's two parts; no precomputed part in a version 1 file.
+  struct CacheFile {
+    std::string payload;
+    CharacterData data;  // the payload read
+    std::optional<std::string> precomputed;
+  };
+  std::shared_ptr<const Entry> Build(const std::string& id, const CharacterData& data, const RigBuildControl& control);
+  // The rig of a cache file, its paths loaded when the file has them; rewrites a file whose paths were
+  // missing or did not fit.
+  std::shared_ptr<const Entry> Rebuild(const std::string& id, const CacheFile& file, const StopCheck& stop);
   // The one build of `id` in flight: from `data` when given (an upload), else from the cache file.
-  std::pair<std::shared_ptr<const Entry>, bool> Acquire(const std::string& id, const CharacterData* data);
+  std::pair<std::shared_ptr<const Entry>, bool> Acquire(const std::string& id, const CharacterData* data,
+                                                        const StopCheck& stop);
   void Insert(std::shared_ptr<const Entry> entry);  // caller holds mutex_
   std::string PathOf(const std::string& id) const;
-  void WriteFile(const std::string& id, const std::string& bytes) const;
-  std::optional<std::string> ReadFile(const std::string& id);
+  void WriteFile(const std::string& id, const std::string& payload, const std::string& precomputed) const;
+  // The checked parts of the cache file; nullopt when there is none, or it is corrupt (then it is removed).
+  std::optional<CacheFile> ReadFile(const std::string& id);
 
   StoreOptions options_;
   mutable std::mutex mutex_;

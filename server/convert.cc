@@ -321,6 +321,13 @@ v1::Character ToProto(const CharacterStore::Entry& entry, bool cache_hit) {
   out->set_boundary_mode(ToString(s.boundary_mode));
   out->set_precompute_ms(s.precompute_ms);
   for (const auto& n : s.notes) out->add_notes(n);
+  out->set_paths_loaded(s.paths_loaded);
+  out->set_path_samples(s.path_samples);
+  out->set_uncertified_path_intervals(s.uncertified_path_intervals);
+  out->set_path_max_error(s.path_max_error);
+  out->set_path_ms(s.path_ms);
+  out->set_path_bytes(static_cast<std::uint64_t>(s.path_bytes));
+  out->set_rig_bytes(static_cast<std::uint64_t>(s.rig_bytes));
   return c;
 }
 
@@ -488,6 +495,9 @@ v1::SolvedFrame ToProto(int index, const Points& positions, const Faces& faces, 
   s->set_inverted_tetrahedra(summary.inverted_tetrahedra);
   s->set_solve_ms(summary.solve_ms);
   s->set_served_by(served_by);
+  s->set_finish(ToString(summary.finish));
+  s->set_solved_vertices(summary.solved_vertices);
+  s->set_free_vertices(summary.free_vertices);
   return out;
 }
 

@@ -87,7 +87,8 @@ struct Server::State {
         watchdog(options.timeouts),
         pool(options.workers, options.queue),
         metadata_pool(options.metadata_workers, options.queue),
-        context{store, pool, metadata_pool, options.limits, options.replica_name, metrics, auth, memory, watchdog},
+        context{store, pool, metadata_pool, options.limits, options.replica_name, metrics, auth, memory, watchdog,
+                drain},
         characters(context),
         solves(context) {}
 
@@ -101,6 +102,7 @@ struct Server::State {
   Watchdog watchdog;
   SolverPool pool;
   SolverPool metadata_pool;
+  DrainDeadline drain;
   ServiceContext context;
   CharacterServiceImpl characters;
   SolveServiceImpl solves;
@@ -191,6 +193,7 @@ void Server::Shutdown() {
     // Probes see NOT_SERVING while in-flight calls drain, so balancers stop sending new ones.
     if (auto* health = state_->server->GetHealthCheckService()) health->SetServingStatus(false);
     if (state_->health) state_->health->SetServing(false);
+    state_->drain.Set(std::chrono::steady_clock::now() + state_->options.drain);
     state_->server->Shutdown(std::chrono::system_clock::now() + state_->options.drain);
   });
   Wait();
@@ -219,6 +222,9 @@ std::string Server::MetricsText() const {
         "# TYPE springblend_cache_rebuilds_from_disk_total counter\nspringblend_cache_rebuilds_from_disk_total {}\n"
         "# TYPE springblend_cache_builds_total counter\nspringblend_cache_builds_total {}\n"
         "# TYPE springblend_cache_corrupt_files_total counter\nspringblend_cache_corrupt_files_total {}\n"
+        "# TYPE springblend_cache_paths_loaded_total counter\nspringblend_cache_paths_loaded_total {}\n"
+        "# TYPE springblend_cache_upgraded_files_total counter\nspringblend_cache_upgraded_files_total {}\n"
+        "# TYPE springblend_cache_cancelled_builds_total counter\nspringblend_cache_cancelled_builds_total {}\n"
         "# TYPE springblend_cache_bytes gauge\nspringblend_cache_bytes {}\n"
         "# TYPE springblend_cache_characters gauge\nspringblend_cache_characters {}\n"
         "# TYPE springblend_queue_depth gauge\nspringblend_queue_depth {}\n"
@@ -226,8 +232,8 @@ std::string Server::MetricsText() const {
         "# TYPE springblend_workers gauge\nspringblend_workers {}\n"
         "# TYPE springblend_request_memory_bytes gauge\nspringblend_request_memory_bytes {}\n",
         s.store.hits, s.store.misses, s.store.evictions, s.store.rebuilds_from_disk, s.store.builds,
-        s.store.corrupt_files, s.store.bytes, s.store.characters, s.queue_depth, s.workers_busy, s.workers,
-        s.request_memory_bytes);
+        s.store.corrupt_files, s.store.paths_loaded, s.store.upgraded_files, s.store.cancelled_builds, s.store.bytes,
+        s.store.characters, s.queue_depth, s.workers_busy, s.workers, s.request_memory_bytes);
   });
 }
 

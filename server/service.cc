@@ -97,6 +97,24 @@ grpc::Status StoppedStatus(const Watchdog::Handle& watch, const char* what) {
 
 const grpc::Status kShuttingDown = ShuttingDown();
 
+bool CallExpired(const grpc::CallbackServerContext& call) { return std::chrono::system_clock::now() > call.deadline(); }
+
+// The stop check of a rig build a call waits for (its upload, or a rebuild from the cache directory): the
+// client cancelled, the call's deadline passed, or the shutdown's drain is over. Another caller waiting for the
+// same build is not stopped by it (CharacterStore builds it again for them).
+StopCheck BuildStop(grpc::CallbackServerContext* call, const ServiceContext& context) {
+  return [call, &context] { return call->IsCancelled() || CallExpired(*call) || context.drain.Passed(); };
+}
+
+// The status of an error from work that built with BuildStop: a stopped build says why it stopped.
+grpc::Status BuildStatus(const std::exception& error, grpc::CallbackServerContext* call, const ServiceContext& context) {
+  const auto* e = dynamic_cast<const Error*>(&error);
+  if (e == nullptr || e->code() != ErrorCode::kCancelled) return ToStatus(error);
+  if (context.drain.Passed()) return kShuttingDown;
+  if (CallExpired(*call)) return DeadlineExceeded("the deadline passed while the character was being built");
+  return Cancelled("the call was cancelled while the character was being built");
+}
+
 class UploadReactor final : public grpc::ServerReadReactor<grpc::ByteBuffer> {
  public:
   UploadReactor(grpc::CallbackServerContext* call, ServiceContext& context, grpc::ByteBuffer* response)
@@ -148,13 +166,13 @@ class UploadReactor final : public grpc::ServerReadReactor<grpc::ByteBuffer> {
     const bool queued = context_.pool.TrySubmit([this] {
       grpc::Status status;
       try {
-        const auto [entry, known] = context_.store.Put(assembler_.Finish());
+        const auto [entry, known] = context_.store.Put(assembler_.Finish(), BuildStop(call_, context_));
         *response_ = Serialize(ToProto(*entry, known));
         spdlog::info("upload {} '{}': {} ({} vertices, {} springs, {:.0f} ms)", entry->id.substr(0, 12),
                      Printable(entry->name), known ? "cache hit" : "built", entry->rig->num_vertices(),
                      entry->rig->num_springs(), entry->rig->summary().precompute_ms);
       } catch (const std::exception& e) {
-        status = ToStatus(e);
+        status = BuildStatus(e, call_, context_);
         spdlog::warn("upload refused: {}", Printable(status.error_message(), 400));
       }
       Done(status);
@@ -214,7 +232,7 @@ class SolveReactor final : public grpc::ServerWriteReactor<grpc::ByteBuffer> {
   void Start() {
     try {
       CheckId(request_.character_id(), "character_id");
-      entry_ = context_.store.Get(request_.character_id());
+      entry_ = context_.store.Get(request_.character_id(), BuildStop(call_, context_));
       if (!entry_) throw StatusError(NotFound(request_.character_id()));
       memory_.Grow(StreamBytes(request_.colliders(), *entry_->rig));
       job_ = ToSolveJob(request_, *entry_->rig, context_.limits, [this] { return call_->IsCancelled() || Expired(); });
@@ -229,7 +247,7 @@ class SolveReactor final : public grpc::ServerWriteReactor<grpc::ByteBuffer> {
     } catch (const std::exception& e) {
       std::unique_lock lock(mutex_);
       --running_;
-      Act(lock, Fail(ToStatus(e)));
+      Act(lock, Fail(BuildStatus(e, call_, context_)));
       return;
     }
     std::unique_lock lock(mutex_);
@@ -702,6 +720,7 @@ class InteractiveReactor final : public grpc::ServerBidiReactor<grpc::ByteBuffer
       CheckSolved(positions, job.index);
       SolveSummary summary;
       summary.termination = Termination::kMaxIterations;
+      summary.finish = Finish::kNone;
       summary.message = "preview: the rig's prediction for these weights (colliders and pins not yet solved)";
       summary.solve_ms = std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - start).count();
       v1::SolvedFrame preview = ToProto(static_cast<int>(job.index), positions, entry_->rig->rest().faces, summary,
@@ -719,7 +738,7 @@ class InteractiveReactor final : public grpc::ServerBidiReactor<grpc::ByteBuffer
   grpc::Status Start() {
     try {
       CheckId(start_.character_id(), "start.character_id");
-      entry_ = context_.store.Get(start_.character_id());
+      entry_ = context_.store.Get(start_.character_id(), BuildStop(call_, context_));
       if (!entry_) return NotFound(start_.character_id());
       memory_.Grow(StreamBytes(start_.colliders(), *entry_->rig));
       ToOptions(start_.options(), &job_);
@@ -731,7 +750,7 @@ class InteractiveReactor final : public grpc::ServerBidiReactor<grpc::ByteBuffer
       solver_->SetColliders(std::move(colliders));
       start_.clear_colliders();  // converted once; the text is not needed again
     } catch (const std::exception& e) {
-      return ToStatus(e);
+      return BuildStatus(e, call_, context_);
     }
     return grpc::Status::OK;
   }
@@ -778,9 +797,14 @@ grpc::ServerUnaryReactor* CharacterServiceImpl::GetCharacter(grpc::CallbackServe
                                                              const grpc::ByteBuffer* in, grpc::ByteBuffer* out) {
   return OnPool<v1::GetCharacterRequest, v1::Character>(
       call, context_, "GetCharacter", Access::kRead, in, out,
-      [this](const v1::GetCharacterRequest& request, v1::Character* response) -> grpc::Status {
+      [this, call](const v1::GetCharacterRequest& request, v1::Character* response) -> grpc::Status {
         CheckId(request.id(), "id");
-        const auto entry = context_.store.Get(request.id());
+        std::shared_ptr<const CharacterStore::Entry> entry;
+        try {
+          entry = context_.store.Get(request.id(), BuildStop(call, context_));
+        } catch (const std::exception& e) {
+          return BuildStatus(e, call, context_);
+        }
         if (!entry) return NotFound(request.id());
         *response = ToProto(*entry, true);
         response->clear_cache_hit();

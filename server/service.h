@@ -2,6 +2,9 @@
 // results back. No solve ever runs on a gRPC thread.
 #pragma once
 
+#include <atomic>
+#include <chrono>
+#include <limits>
 #include <memory>
 #include <string>
 
@@ -16,6 +19,22 @@
 
 namespace springblend::server {
 
+// The end of a shutdown's drain (Server::Shutdown sets it): past it the server stops waiting for in-flight
+// work, and a rig build (an upload's, or a rebuild from the cache directory) stops too rather than hold the
+// shutdown for minutes. Never passed before a shutdown.
+class DrainDeadline {
+ public:
+  void Set(std::chrono::steady_clock::time_point end) {
+    end_.store(end.time_since_epoch().count(), std::memory_order_relaxed);
+  }
+  bool Passed() const {
+    return std::chrono::steady_clock::now().time_since_epoch().count() >= end_.load(std::memory_order_relaxed);
+  }
+
+ private:
+  std::atomic<std::chrono::steady_clock::rep> end_{std::numeric_limits<std::chrono::steady_clock::rep>::max()};
+};
+
 struct ServiceContext {
   CharacterStore& store;
   SolverPool& pool;           // solves and builds: Solve, Interactive, UploadCharacter
@@ -26,6 +45,7 @@ struct ServiceContext {
   const TokenAuthenticator& auth;  // checked first by every handler; without tokens every call is allowed
   MemoryBudget& memory;            // uploads in progress and open streams (--request-memory-mb)
   Watchdog& watchdog;              // stalled streams and idle sessions (--stall-seconds, --idle-seconds)
+  const DrainDeadline& drain;      // builds stop once a shutdown's drain is over
 };
 
 // Every method is registered raw (grpc::ByteBuffer in and out) so that bytes which do not parse as the request

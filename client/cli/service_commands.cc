@@ -101,7 +101,10 @@ nlohmann::json CharacterJson(const v1::Character& c) {
           {"tetrahedra", s.tetrahedra()},
           {"interior", s.interior()},
           {"boundary_mode", s.boundary_mode()},
-          {"precompute_ms", s.precompute_ms()}};
+          {"precompute_ms", s.precompute_ms()},
+          {"paths_loaded", s.paths_loaded()},
+          {"path_samples", s.path_samples()},
+          {"path_ms", s.path_ms()}};
 }
 
 ClientOptions OptionsOf(const RemoteArgs& args) {
@@ -204,7 +207,8 @@ int RunSolve(const RemoteArgs& args) {
                                  {"termination", s.termination()}, {"message", s.message()},
                                  {"newton_iterations", s.newton_iterations()}, {"residual", s.residual()},
                                  {"contacts", s.contacts()}, {"pins", s.pins()},
-                                 {"inverted_tetrahedra", s.inverted_tetrahedra()}, {"solve_ms", s.solve_ms()},
+                                 {"inverted_tetrahedra", s.inverted_tetrahedra()}, {"finish", s.finish()},
+                                 {"solved_vertices", s.solved_vertices()}, {"solve_ms", s.solve_ms()},
                                  {"received_ms", received_ms}, {"served_by", s.served_by()}};
     if (progress) {
       const double seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();

@@ -416,6 +416,91 @@ TEST_F(InProcessServerTest, ConcurrentFirstRequestsForAColdCharacterBuildItOnce)
   EXPECT_EQ(new_uploads, 1);
 }
 
+// A restarted server (a new Server on the same cache directory) loads the character's target paths from its
+// cache file instead of solving them, and serves the very frames the first server did.
+TEST_F(InProcessServerTest, ARestartedServerLoadsThePathsAndServesTheSameFrames) {
+  const v1::Character first = client_->Upload(cylinder_.rest, cylinder_.targets, {}, "cylinder");
+  const v1::RigSummary& built = first.summary();
+  EXPECT_FALSE(built.paths_loaded());
+  EXPECT_GT(built.path_samples(), 0u);
+  EXPECT_GT(built.path_ms(), 0.0);
+  EXPECT_GT(built.path_bytes(), 0u);
+  EXPECT_GT(built.rig_bytes(), 0u);
+  EXPECT_GE(built.path_max_error(), 0.0);
+  std::vector<v1::SolvedFrame> before, after;
+  client_->Solve(Sweep(first.id(), 5), [&](const v1::SolvedFrame& f) { before.push_back(f); });
+  client_.reset();
+  server_.reset();
+  server_ = Server::Create(Options(cache_.path().string()));
+  client_ = std::make_unique<Client>(server_->InProcessChannel());
+  const v1::Character again = client_->Get(first.id());
+  EXPECT_TRUE(again.summary().paths_loaded());
+  EXPECT_EQ(again.summary().path_samples(), built.path_samples());
+  EXPECT_EQ(again.summary().uncertified_path_intervals(), built.uncertified_path_intervals());
+  EXPECT_EQ(again.summary().path_ms(), 0.0) << "nothing solved";
+  client_->Solve(Sweep(first.id(), 5), [&](const v1::SolvedFrame& f) { after.push_back(f); });
+  ASSERT_EQ(before.size(), 5u);
+  ASSERT_EQ(after.size(), 5u);
+  for (size_t i = 0; i < 5; ++i) {
+    EXPECT_EQ(after[i].positions(), before[i].positions()) << "frame " << i;
+    const v1::FrameSummary& s = after[i].summary();
+    EXPECT_THAT(s.finish(), ::testing::AnyOf("full", "local")) << "frame " << i;
+    EXPECT_EQ(s.finish(), before[i].summary().finish());
+    EXPECT_GT(s.free_vertices(), 0u);
+    EXPECT_LE(s.solved_vertices(), s.free_vertices());
+  }
+  EXPECT_EQ(server_->stats().store.paths_loaded, 1);
+  EXPECT_EQ(server_->stats().store.rebuilds_from_disk, 1);
+}
+
+std::vector<TriangleMesh> CubeTargets() {
+  std::vector<TriangleMesh> targets;
+  for (int i = 1; i <= 4; ++i) {
+    targets.push_back(LoadMesh(testing::DataPath("cube/poses-1_cube-" + std::to_string(i) + ".obj")));
+  }
+  return targets;
+}
+
+// An upload whose deadline passes while its rig is built (the cube's takes about ten seconds) stops the build:
+// the client is answered at its deadline, the server's worker is free soon after, and nothing is kept.
+TEST_F(InProcessServerTest, AnUploadPastItsDeadlineStopsItsBuild) {
+  ClientOptions options;
+  options.timeout = std::chrono::milliseconds(1500);
+  Client hasty(server_->InProcessChannel(), options);
+  const auto start = Clock::now();
+  EXPECT_EQ(CodeOf([&] { hasty.Upload(LoadMesh(testing::DataPath("cube/cube.obj")), CubeTargets()); }),
+            grpc::StatusCode::DEADLINE_EXCEEDED);
+  const auto until = Clock::now() + std::chrono::seconds(5);
+  while (server_->stats().store.cancelled_builds == 0 && Clock::now() < until) {
+    std::this_thread::sleep_for(std::chrono::milliseconds(20));
+  }
+  EXPECT_EQ(server_->stats().store.cancelled_builds, 1);
+  EXPECT_LT(Clock::now() - start, std::chrono::seconds(4)) << "stopped, not built to the end";
+  EXPECT_EQ(server_->stats().store.characters, 0);
+  EXPECT_TRUE(std::filesystem::is_empty(cache_.path()));
+}
+
+// A shutdown is not held up by a long build: once its drain is over, the build stops. Over a network port
+// (in-process calls are cancelled at once by a shutdown).
+TEST_F(InProcessServerTest, ShutdownStopsABuildOnceItsDrainIsOver) {
+  ServerOptions options = Options(cache_.path().string());
+  options.listen = {"127.0.0.1:0"};
+  options.drain = std::chrono::milliseconds(300);
+  server_ = Server::Create(options);
+  auto upload = std::async(std::launch::async, [&] {
+    Client client({server_->addresses()[0]});
+    return CodeOf([&] { client.Upload(LoadMesh(testing::DataPath("cube/cube.obj")), CubeTargets()); });
+  });
+  const auto until = Clock::now() + std::chrono::seconds(5);
+  while (server_->stats().store.builds == 0 && Clock::now() < until) std::this_thread::sleep_for(std::chrono::milliseconds(5));
+  const auto start = Clock::now();
+  server_->Shutdown();
+  EXPECT_LT(Clock::now() - start, std::chrono::seconds(2));
+  EXPECT_NE(upload.get(), grpc::StatusCode::OK);
+  EXPECT_EQ(server_->stats().store.cancelled_builds, 1);
+  EXPECT_TRUE(std::filesystem::is_empty(cache_.path()));
+}
+
 // Shutdown drains: health says NOT_SERVING at once, a stream in flight (64 frames, read after the shutdown
 // began) finishes with every frame, new calls are refused, and Shutdown returns once the stream has ended. A
 // network port and the health port serve too.
