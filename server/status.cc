@@ -12,6 +12,7 @@ grpc::Status ToStatus(const std::exception& error) {
       case ErrorCode::kInvalidInput: return {grpc::StatusCode::INVALID_ARGUMENT, e->what()};
       case ErrorCode::kNotFound: return {grpc::StatusCode::NOT_FOUND, e->what()};
       case ErrorCode::kNumerical: return {grpc::StatusCode::INTERNAL, std::string("solver: ") + e->what()};
+      case ErrorCode::kCancelled: return {grpc::StatusCode::CANCELLED, e->what()};
       case ErrorCode::kInternal: break;
     }
   }

@@ -20,6 +20,15 @@ const char* ToString(HessianMode mode) {
   return "unknown";
 }
 
+const char* ToString(Finish finish) {
+  switch (finish) {
+    case Finish::kFull: return "full";
+    case Finish::kLocal: return "local";
+    case Finish::kNone: return "none";
+  }
+  return "unknown";
+}
+
 const char* ToString(Termination termination) {
   switch (termination) {
     case Termination::kConverged: return "converged";
@@ -62,6 +71,9 @@ void SolveOptions::Validate() const {
   }
   if (!(max_step_fraction > 0.0 && max_step_fraction <= 1000.0)) {
     fail(fmt::format("solve option max_step_fraction = {} is outside (0, 1000]", max_step_fraction));
+  }
+  if (!(local_finish_share > 0.0 && local_finish_share <= 1.0)) {
+    fail(fmt::format("solve option local_finish_share = {} is outside (0, 1]", local_finish_share));
   }
   if (max_contact_rounds < 1 || max_contact_rounds > 1000) {
     fail(fmt::format("solve option max_contact_rounds = {} is outside [1, 1000]", max_contact_rounds));

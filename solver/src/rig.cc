@@ -18,6 +18,7 @@ const char* ToString(ErrorCode code) {
     case ErrorCode::kNotFound: return "not found";
     case ErrorCode::kNumerical: return "numerical failure";
     case ErrorCode::kInternal: return "internal error";
+    case ErrorCode::kCancelled: return "cancelled";
   }
   return "unknown";
 }
@@ -75,6 +76,11 @@ void RigOptions::Validate() const {
   in_range(anchor_size, 3, 1000, "anchor_size");
   in_range(path_intervals, 1, 64, "path_intervals");
   in_range(path_extension, 0.0, 2.0, "path_extension");
+  if (!(path_tolerance > 0.0 && path_tolerance <= 0.1)) {
+    throw Error(ErrorCode::kInvalidInput,
+                fmt::format("rig option path_tolerance = {} is outside (0, 0.1]", path_tolerance));
+  }
+  in_range(path_max_samples, 4, 1024, "path_max_samples");
   if (!(shell_thickness > 0.0 && shell_thickness <= 100.0)) {
     throw Error(ErrorCode::kInvalidInput,
                 fmt::format("rig option shell_thickness = {} is outside (0, 100]", shell_thickness));
@@ -95,11 +101,23 @@ double Elapsed(std::chrono::steady_clock::time_point since) {
   return std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - since).count();
 }
 
+// The arrays a rig keeps besides its paths: shapes, springs with their per-shape lengths, the Hessian's
+// pattern (and the symbolic factor about as large), the meshes.
+std::int64_t EstimateRigBytes(const Rig& rig) {
+  const std::int64_t n = rig.num_vertices(), m = rig.num_springs(), shapes = rig.num_shapes() + 1;
+  return 24 * n * shapes * 2 + m * (9 + 8 * shapes) + rig.summary().hessian_nonzeros * 16 +
+         rig.summary().faces * 12LL * shapes;
+}
+
 }  // namespace
 
 std::shared_ptr<const Rig> RigBuilder::Build(TriangleMesh rest, std::vector<TargetSpec> targets,
-                                             const RigOptions& options) {
+                                             const RigOptions& options, const RigBuildControl& control) {
   const auto start = std::chrono::steady_clock::now();
+  const auto stage = [&](const char* name, int targets_with_paths = 0, int done = 0, int samples = 0) {
+    if (control.stop && control.stop()) throw Error(ErrorCode::kCancelled, "the rig build was cancelled");
+    if (control.progress) control.progress({name, targets_with_paths, done, samples, Elapsed(start)});
+  };
   options.Validate();
   ValidateMesh(rest);
 
@@ -119,7 +137,9 @@ std::shared_ptr<const Rig> RigBuilder::Build(TriangleMesh rest, std::vector<Targ
     throw Error(ErrorCode::kInvalidInput, rig->rest_.source + ": all vertices coincide");
   }
 
+  stage("springs");
   builder.BuildSurfaceSprings();
+  stage("interior");
   builder.BuildInterior();
   if (options.interior && options.shell && builder.interior_.path == internal::Interior::Path::kSurfaceOnly) {
     builder.BuildShell();
@@ -133,6 +153,7 @@ std::shared_ptr<const Rig> RigBuilder::Build(TriangleMesh rest, std::vector<Targ
   builder.FindDegenerateFaces();
   builder.BuildBoundary();
 
+  stage("analysis");
   Rig::Internals& internals = *rig->internals_;
   internals.pattern = std::make_unique<internal::HessianPattern>(
       internal::HessianPattern::Build(s.vertices, rig->spring_a_, rig->spring_b_));
@@ -140,6 +161,7 @@ std::shared_ptr<const Rig> RigBuilder::Build(TriangleMesh rest, std::vector<Targ
   internals.cholesky = internal::SparseCholesky::Create(options.linear_solver);
   internals.cholesky->Analyze(internals.pattern->matrix);
 
+  stage("placement");
   if (s.shell_vertices > 0) {
     builder.PlaceShell();
   } else {
@@ -147,16 +169,61 @@ std::shared_ptr<const Rig> RigBuilder::Build(TriangleMesh rest, std::vector<Targ
   }
   builder.ComputeRestLengths();
   builder.ApplyMasks();
+  s.rig_bytes = EstimateRigBytes(*rig);
   if (options.target_paths) {
-    internal::TargetPathsReport report;
-    internals.paths = internal::BuildTargetPaths(*rig, options.path_intervals, options.path_extension, &report);
-    s.path_samples = report.samples;
-    s.unconverged_path_samples = report.unconverged;
-    s.path_ms = report.ms;
-    if (report.unconverged > 0) {
-      s.notes.push_back(fmt::format("{} of {} samples of the targets' paths did not converge; frames near them "
-                                    "start from the best found",
-                                    report.unconverged, report.samples));
+    std::string why;
+    if (control.precomputed != nullptr) {
+      if (auto paths = internal::ParseTargetPaths(*control.precomputed, rig->num_targets(), s.vertices, &why)) {
+        internals.paths = std::move(*paths);
+        s.paths_loaded = true;
+      } else {
+        s.notes.push_back("the precomputed target paths were not used (" + why + "): solved again");
+      }
+    }
+    if (!s.paths_loaded) {
+      int with_path = 0;
+      for (int t = 0; t < rig->num_targets(); ++t) with_path += internal::TargetChangesLengths(*rig, t) ? 1 : 0;
+      stage("paths", with_path);
+      internal::TargetPathsOptions path_options;
+      path_options.intervals = options.path_intervals;
+      path_options.extension = options.path_extension;
+      path_options.tolerance = options.path_tolerance;
+      path_options.max_samples = options.path_max_samples;
+      path_options.stop = control.stop ? &control.stop : nullptr;
+      int done = 0, samples = 0;
+      if (control.progress) {
+        path_options.done = [&](int, const internal::TargetPath& path) {
+          ++done;
+          samples += path.samples();
+          control.progress({"paths", with_path, done, samples, Elapsed(start)});
+        };
+      }
+      internal::TargetPathsReport report;
+      internals.paths = internal::BuildTargetPaths(*rig, path_options, &report);
+      s.unconverged_path_samples = report.unconverged;
+      s.path_ms = report.ms;
+      if (report.unconverged > 0) {
+        s.notes.push_back(fmt::format("{} of {} samples of the targets' paths did not converge; frames near them "
+                                      "start from the best found",
+                                      report.unconverged, report.samples));
+      }
+    }
+    for (size_t t = 0; t < internals.paths.size(); ++t) {
+      const internal::TargetPath& path = internals.paths[t];
+      if (path.empty()) continue;
+      s.path_samples += path.samples();
+      s.path_solves += path.solves;
+      s.uncertified_path_intervals += path.uncertified();
+      s.path_max_error = std::max(s.path_max_error, path.max_error);
+      s.path_bytes += path.bytes();
+      s.paths.push_back({rig->target_names_[t], path.samples(), path.solves, path.uncertified(), path.max_error,
+                         s.paths_loaded ? 0.0 : path.build_ms});
+    }
+    if (s.uncertified_path_intervals > 0) {
+      s.notes.push_back(fmt::format(
+          "{} intervals of the targets' paths are not certified within {} samples per target (frames there start "
+          "farther from their answer and may need a full solve)",
+          s.uncertified_path_intervals, options.path_max_samples));
     }
   }
   if (s.boundary_mode == BoundaryMode::kFloating) {
@@ -166,8 +233,11 @@ std::shared_ptr<const Rig> RigBuilder::Build(TriangleMesh rest, std::vector<Targ
         rig->gauge_[0], rig->gauge_[1], rig->gauge_[2]));
   }
   s.precompute_ms = Elapsed(start);
+  stage("done", 0, 0, s.path_samples);
   return rig;
 }
+
+std::string Rig::SavePrecomputed() const { return internal::SerializeTargetPaths(internals_->paths); }
 
 std::shared_ptr<const Rig> Rig::Build(TriangleMesh rest, std::vector<TriangleMesh> targets,
                                       const RigOptions& options) {
@@ -176,12 +246,17 @@ std::shared_ptr<const Rig> Rig::Build(TriangleMesh rest, std::vector<TriangleMes
     specs[t].name = targets[t].name;
     specs[t].mesh = std::move(targets[t]);
   }
-  return RigBuilder::Build(std::move(rest), std::move(specs), options);
+  return RigBuilder::Build(std::move(rest), std::move(specs), options, {});
 }
 
 std::shared_ptr<const Rig> Rig::Build(TriangleMesh rest, std::vector<TargetSpec> targets,
                                       const RigOptions& options) {
-  return RigBuilder::Build(std::move(rest), std::move(targets), options);
+  return RigBuilder::Build(std::move(rest), std::move(targets), options, {});
+}
+
+std::shared_ptr<const Rig> Rig::Build(TriangleMesh rest, std::vector<TargetSpec> targets, const RigOptions& options,
+                                      const RigBuildControl& control) {
+  return RigBuilder::Build(std::move(rest), std::move(targets), options, control);
 }
 
 }  // namespace springblend

@@ -17,7 +17,7 @@ namespace springblend {
 class RigBuilder {
  public:
   static std::shared_ptr<const Rig> Build(TriangleMesh rest, std::vector<TargetSpec> targets,
-                                          const RigOptions& options);
+                                          const RigOptions& options, const RigBuildControl& control);
 
  private:
   explicit RigBuilder(std::shared_ptr<Rig> rig) : rig_(std::move(rig)), r_(*rig_) {}

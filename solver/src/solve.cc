@@ -14,6 +14,7 @@
 #include "boundary_conditions.h"
 #include "contact_set.h"
 #include "linear_system.h"
+#include "local_finish.h"
 #include "minimizer.h"
 #include "frame_conditions.h"
 #include "laplacian.h"
@@ -80,13 +81,13 @@ class Solver::Impl {
   }
 
   SolveSummary Solve(const Frame& frame, Points* positions, const std::function<bool()>* stop);
-  // The start for these shape weights (stacked 3n) from the linear blend of every simulated vertex.
-  void StartOf(const Points& linear, const std::vector<double>& shape_weights,
+  // The start for these target weights (stacked 3n) from the linear blend of every simulated vertex.
+  void StartOf(const Points& linear, const std::vector<double>& weights,
                const std::optional<internal::AnchorMotion>& motion, Eigen::VectorXd* x) const {
     const int n = static_cast<int>(linear.rows());
     x->resize(3 * n);
     for (int v = 0; v < n; ++v) x->segment<3>(3 * v) = linear.row(v).transpose();
-    if (options_.use_target_paths) internal::AddPathCorrections(rig_->internals().paths, shape_weights, motion, x);
+    if (options_.use_target_paths) internal::AddPathCorrections(rig_->internals().paths, weights, motion, x);
   }
   const Points& all_positions() const { return previous_; }
   void SetColliders(std::vector<Collider> colliders) {
@@ -173,6 +174,7 @@ SolveSummary Solver::Impl::Solve(const Frame& frame, Points* positions, const st
   summary.pins = static_cast<int>(frame.pins.size());
   if (options_.linear) {
     *positions = linear.topRows(rig.num_surface_vertices());
+    summary.finish = Finish::kNone;
     summary.termination = Termination::kLinear;
     summary.message = "linear blendshape";
     summary.solve_ms = Elapsed(start);
@@ -187,7 +189,7 @@ SolveSummary Solver::Impl::Solve(const Frame& frame, Points* positions, const st
   for (const Pin& pin : frame.pins) pins.emplace_back(pin.vertex, pin.position);
   const internal::FrameConditions conditions = internal::ConditionsOf(rig, shape_weights, linear, pins);
   const BoundaryMode mode = conditions.mode;
-  StartOf(linear, shape_weights, conditions.motion, &x_);
+  StartOf(linear, frame.weights, conditions.motion, &x_);
   if (!internal::HoldConditions(rig, conditions, &x_, &held_)) {
     summary.termination = Termination::kNumericalFailure;
     summary.message = "the gauge vertices became collinear in the start configuration";
@@ -209,7 +211,39 @@ SolveSummary Solver::Impl::Solve(const Frame& frame, Points* positions, const st
   base_held_ = held_;
   contacts_.Clear();
   internal::MinimizerSummary minimized;
-  Minimize(diagonal_shift, &minimized);
+  bool finished = false;
+  if (options_.local_finish) {
+    internal::LocalFinishOptions local;
+    local.residual_tolerance = options_.residual_tolerance;
+    local.step_tolerance = options_.step_tolerance;
+    local.max_step_fraction = options_.max_step_fraction;
+    local.max_line_search_steps = options_.max_line_search_steps;
+    local.max_share = options_.local_finish_share;
+    const auto clock = std::chrono::steady_clock::now();
+    const internal::LocalFinishResult result = internal::LocalFinish(
+        &springs_, held_, diagonal_shift, diagonal, rig.summary().mean_rest_length, local, stop, &x_);
+    timing_.solve_ms += Elapsed(clock);
+    summary.free_vertices = result.free_vertices;
+    minimized.initial_residual = result.initial_residual;
+    minimized.iterations += result.iterations;
+    minimized.line_search_halvings += result.line_search_halvings;
+    if (result.converged) {
+      finished = true;
+      summary.finish = Finish::kLocal;
+      summary.solved_vertices = result.vertices;
+      minimized.termination = internal::MinimizerTermination::kConverged;
+      minimized.residual = result.residual;
+      minimized.last_step = result.last_step;
+      minimized.energy = springs_.Energy(x_);
+    } else {
+      summary.local_finish_note = result.why;
+    }
+  }
+  if (!finished) {
+    Minimize(diagonal_shift, &minimized);  // keeps the initial residual once iterations were counted
+    summary.finish = Finish::kFull;
+    summary.solved_vertices = summary.free_vertices;
+  }
   int contact_rounds = 0;
   if (!colliders_.empty() && minimized.termination != internal::MinimizerTermination::kNumericalFailure) {
     // Paper section 4: hold the vertices that went inside an obstacle on its surface and solve again, and
@@ -288,7 +322,7 @@ Points Solver::Start(const std::vector<double>& weights) const {
     motion = internal::BlendAnchorMotions(rig.internals().anchor_motions, shape_weights);
   }
   Eigen::VectorXd x;
-  impl_->StartOf(linear, shape_weights, motion, &x);
+  impl_->StartOf(linear, weights, motion, &x);
   Points start(rig.num_vertices(), 3);
   for (int v = 0; v < rig.num_vertices(); ++v) start.row(v) = x.segment<3>(3 * v).transpose();
   return start;

@@ -1,68 +1,250 @@
 #include "target_paths.h"
 
+#include <fmt/format.h>
 #include <tbb/parallel_for.h>
 
 #include <algorithm>
 #include <chrono>
 #include <cmath>
+#include <cstdlib>
+#include <cstring>
 #include <limits>
+#include <mutex>
 
 #include "frame_conditions.h"
 #include "minimizer.h"
 #include "predictor.h"
 #include "rig_internals.h"
 #include "rigid.h"
+#include "springblend/error.h"
 
 namespace springblend::internal {
 
 namespace {
 
 constexpr int kMaxHalvings = 3;
+constexpr std::uint8_t kUnchecked = 255;
+constexpr std::uint8_t kSwitch = 2;
+constexpr char kPathsMagic[8] = {'S', 'B', 'P', 'A', 'T', 'H', '0', '2'};
 
-// The solves along one target's path, sharing one spring system, linear system and minimizer.
+double Elapsed(std::chrono::steady_clock::time_point since) {
+  return std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - since).count();
+}
+
+// Coefficients c_j of the derivative at t of the parabola through (nodes_j, y_j): y'(t) = sum_j c_j y_j.
+std::array<double, 3> ParabolaSlope(const std::array<double, 3>& nodes, double t) {
+  std::array<double, 3> c{};
+  for (int j = 0; j < 3; ++j) {
+    double denominator = 1.0, numerator = 0.0;
+    for (int k = 0; k < 3; ++k) {
+      if (k == j) continue;
+      denominator *= nodes[j] - nodes[k];
+      double product = 1.0;
+      for (int l = 0; l < 3; ++l) {
+        if (l != j && l != k) product *= t - nodes[l];
+      }
+      numerator += product;
+    }
+    c[j] = numerator / denominator;
+  }
+  return c;
+}
+
+// The samples and weights whose sum is the interpolant at alpha (at most four samples).
+struct Stencil {
+  int count = 0;
+  std::array<int, 4> sample{};
+  std::array<double, 4> weight{};
+  void Add(int k, double w) {
+    for (int i = 0; i < count; ++i) {
+      if (sample[i] == k) {
+        weight[i] += w;
+        return;
+      }
+    }
+    sample[count] = k;
+    weight[count] = w;
+    ++count;
+  }
+};
+
+// Whether sample k's tangent may use samples on both sides: not at a break (an in-between's weight, where the
+// path has a kink), not next to the switch between branches, not at either end.
+bool Smooth(const TargetPath& path, int k) {
+  const int n = path.samples();
+  if (k <= 0 || k >= n - 1) return false;
+  if (!path.breaks.empty() && path.breaks[k] != 0) return false;
+  return path.certified[k - 1] != kSwitch && path.certified[k] != kSwitch;
+}
+
+// Tangent at sample k for interval i (k is i or i + 1) as sample weights.
+void AddTangent(const TargetPath& path, int i, int k, double scale, Stencil* stencil) {
+  const std::vector<double>& a = path.alphas;
+  const int n = path.samples();
+  std::array<int, 3> nodes{};
+  if (Smooth(path, k)) {
+    nodes = {k - 1, k, k + 1};
+  } else {
+    // One-sided, on interval i's side: the parabola through three samples of that side if they are on one
+    // smooth piece, else the secant.
+    const bool forward = k == i;
+    const int far = forward ? k + 2 : k - 2;
+    const int near = forward ? k + 1 : k - 1;
+    const int middle_interval = forward ? k + 1 : k - 2;
+    const bool three = far >= 0 && far < n && path.certified[middle_interval] != kSwitch &&
+                       (path.breaks.empty() || path.breaks[near] == 0);
+    if (!three) {
+      const double h = a[near] - a[k];
+      stencil->Add(near, scale / h);
+      stencil->Add(k, -scale / h);
+      return;
+    }
+    nodes = forward ? std::array<int, 3>{k, k + 1, k + 2} : std::array<int, 3>{k - 2, k - 1, k};
+  }
+  const auto c = ParabolaSlope({a[nodes[0]], a[nodes[1]], a[nodes[2]]}, a[k]);
+  for (int j = 0; j < 3; ++j) stencil->Add(nodes[j], scale * c[j]);
+}
+
+Stencil StencilAt(const TargetPath& path, double alpha) {
+  Stencil stencil;
+  const std::vector<double>& a = path.alphas;
+  const int n = path.samples();
+  if (n == 1 || alpha <= a.front()) {
+    stencil.Add(0, 1.0);
+    return stencil;
+  }
+  if (alpha >= a.back()) {
+    stencil.Add(n - 1, 1.0);
+    return stencil;
+  }
+  const int i = static_cast<int>(std::upper_bound(a.begin(), a.end(), alpha) - a.begin()) - 1;
+  const double h = a[i + 1] - a[i];
+  const double s = (alpha - a[i]) / h;
+  if (path.certified[i] == kSwitch) {  // between two branches: no tangent carries across
+    stencil.Add(i, 1.0 - s);
+    stencil.Add(i + 1, s);
+    return stencil;
+  }
+  const double s2 = s * s, s3 = s2 * s;
+  stencil.Add(i, 2 * s3 - 3 * s2 + 1);
+  stencil.Add(i + 1, -2 * s3 + 3 * s2);
+  AddTangent(path, i, i, h * (s3 - 2 * s2 + s), &stencil);
+  AddTangent(path, i, i + 1, h * (s3 - s2), &stencil);
+  return stencil;
+}
+
+struct Sample {
+  double alpha = 0.0;
+  Eigen::MatrixXf correction;  // anchor's frame
+  double energy = 0.0;         // infinite when a tentative solve failed
+  bool converged = false;
+};
+
+// Samples are solved well below the path's tolerance, so that a midpoint check measures the interpolant's
+// error rather than the solves'.
+MinimizerOptions SampleOptions(double tolerance) {
+  MinimizerOptions options;
+  options.residual_tolerance = 1e-7;
+  options.step_tolerance = 0.1 * tolerance;
+  return options;
+}
+
+// The solves along one target's path, sharing one spring system, linear system and minimizer (whose kept
+// factorization preconditions the next sample while it stays close).
 class PathSolver {
  public:
-  PathSolver(const Rig& rig, int target)
+  PathSolver(const Rig& rig, int target, double tolerance, const std::function<bool()>* stop, TargetPath* path)
       : rig_(rig),
         target_(target),
+        stop_(stop),
+        path_(path),
         springs_(TopologyOf(rig)),
         linear_(rig.internals().pattern->matrix, *rig.internals().cholesky, rig.options().linear_solver),
-        minimizer_(Minimizer::Create(MinimizerOptions{})),
+        minimizer_(Minimizer::Create(SampleOptions(tolerance))),
         held_(3 * static_cast<size_t>(rig.num_vertices()), 0) {
     springs_.set_length_scale(rig.summary().mean_rest_length);
   }
 
-  struct Sample {
-    Eigen::MatrixXf correction;  // in the anchor's frame
-    double energy = 0.0;
-  };
-  // Solves alpha * target coming from `from` (the previous sample): where the continuation step is too long
-  // for Newton to converge, it is halved (up to three times) and the path followed through the midpoints.
-  Sample Refined(double from, double alpha, Predictor& predictor, TargetPathsReport& report, int depth = 0) {
-    Predictor before = predictor;
-    Sample sample = Solve(alpha, predictor, report, depth < kMaxHalvings);
-    if (std::isfinite(sample.energy) || depth >= kMaxHalvings) return sample;
-    predictor = std::move(before);
-    const double middle = 0.5 * (from + alpha);
-    Refined(from, middle, predictor, report, depth + 1);
-    return Refined(middle, alpha, predictor, report, depth + 1);
+  std::vector<double> Weights(double alpha) const {
+    std::vector<double> weights(rig_.num_targets(), 0.0);
+    weights[target_] = alpha;
+    return weights;
   }
 
-  // Solves alpha * target from the predictor's start. A tentative solve that fails is not counted.
-  Sample Solve(double alpha, Predictor& predictor, TargetPathsReport& report, bool tentative = false) {
-    const int n = rig_.num_vertices();
-    std::vector<double> weights(rig_.num_shapes(), 0.0);
-    weights[target_] = alpha;
-    Points linear = rig_.shape(0);
-    if (alpha != 0.0) linear += alpha * (rig_.shape(target_ + 1) - rig_.shape(0));
+  // The sculpted shape of a knot (alpha 0, an in-between's weight, 1): a zero correction when it is in
+  // balance (an unmasked shape: zero energy), else the equilibrium solved from it.
+  Sample End(double alpha, Predictor* predictor) {
+    const std::vector<double> weights = Weights(alpha);
+    const std::vector<double> shape_weights = rig_.ShapeWeights(weights);
+    const Points linear = LinearBlendShapes(rig_, shape_weights);
     std::vector<double> rest_lengths;
-    BlendRestLengths(rig_, weights, &rest_lengths);
+    BlendRestLengths(rig_, shape_weights, &rest_lengths);
     springs_.SetRestLengths(std::move(rest_lengths), rig_.spring_kind(), KindStiffness(rig_.options()),
                             StiffnessFloor(rig_));
-    const FrameConditions conditions = ConditionsOf(rig_, weights, linear, {});
+    const FrameConditions conditions = ConditionsOf(rig_, shape_weights, linear, {});
+    Eigen::VectorXd x(3 * linear.rows());
+    for (Eigen::Index v = 0; v < linear.rows(); ++v) x.segment<3>(3 * v) = linear.row(v).transpose();
+    if (!HoldConditions(rig_, conditions, &x, &held_) ||
+        springs_.Evaluate(x, held_, Curvature{}, false) > SampleOptions(1.0).residual_tolerance) {
+      const Eigen::MatrixXd zero = Eigen::MatrixXd::Zero(rig_.num_vertices(), 3);
+      return Solve(alpha, predictor, &zero);
+    }
+    if (predictor != nullptr) predictor->Add(linear, conditions.motion, weights, true);
+    return {alpha, Eigen::MatrixXf::Zero(rig_.num_vertices(), 3), 0.0, true};
+  }
+
+  // Starts a predictor from a solved sample.
+  void Anchor(const Sample& sample, Predictor* predictor) const {
+    const std::vector<double> weights = Weights(sample.alpha);
+    const std::vector<double> shape_weights = rig_.ShapeWeights(weights);
+    const Points linear = LinearBlendShapes(rig_, shape_weights);
+    const std::optional<AnchorMotion> motion = ConditionsOf(rig_, shape_weights, linear, {}).motion;
+    Points correction = sample.correction.cast<double>();
+    if (motion) correction = correction * motion->rotation.toRotationMatrix().transpose();
+    predictor->Add(linear + correction, motion, weights, sample.converged);
+  }
+
+  // Solves alpha * target coming from `from` (the previous sample): where the continuation step is too long
+  // for Newton to converge, it is halved (up to three times) and the path followed through the midpoints,
+  // which are kept as samples too (in *out, ascending along the way).
+  void Refined(double from, double alpha, Predictor& predictor, std::vector<Sample>* out, int depth = 0) {
+    Predictor before = predictor;
+    Sample sample = Solve(alpha, &predictor, nullptr, depth < kMaxHalvings);
+    if (std::isfinite(sample.energy) || depth >= kMaxHalvings) {
+      out->push_back(std::move(sample));
+      return;
+    }
+    predictor = std::move(before);
+    const double middle = 0.5 * (from + alpha);
+    Refined(from, middle, predictor, out, depth + 1);
+    Refined(middle, alpha, predictor, out, depth + 1);
+  }
+
+  // Solves the target at alpha from the predictor's start, or from `correction` (anchor's frame) when given.
+  // A tentative solve that fails is not counted.
+  Sample Solve(double alpha, Predictor* predictor, const Eigen::MatrixXd* correction, bool tentative = false) {
+    if (stop_ != nullptr && *stop_ && (*stop_)()) {
+      throw Error(ErrorCode::kCancelled, "the rig build was cancelled");
+    }
+    const int n = rig_.num_vertices();
+    const std::vector<double> weights = Weights(alpha);
+    const std::vector<double> shape_weights = rig_.ShapeWeights(weights);
+    const Points linear = LinearBlendShapes(rig_, shape_weights);
+    std::vector<double> rest_lengths;
+    BlendRestLengths(rig_, shape_weights, &rest_lengths);
+    springs_.SetRestLengths(std::move(rest_lengths), rig_.spring_kind(), KindStiffness(rig_.options()),
+                            StiffnessFloor(rig_));
+    const FrameConditions conditions = ConditionsOf(rig_, shape_weights, linear, {});
     Eigen::VectorXd x;
-    predictor.Predict(linear, conditions.motion, rig_.anchor_centroid(), weights, conditions.held, true,
-                      [&](const Eigen::VectorXd& y) { return springs_.Energy(y); }, &x);
+    if (correction != nullptr) {
+      Eigen::MatrixXd world = *correction;
+      if (conditions.motion) world = world * conditions.motion->rotation.toRotationMatrix().transpose();
+      x.resize(3 * n);
+      for (int v = 0; v < n; ++v) x.segment<3>(3 * v) = (linear.row(v) + world.row(v)).transpose();
+    } else {
+      predictor->Predict(linear, conditions.motion, rig_.anchor_centroid(), weights, conditions.held, true,
+                         [&](const Eigen::VectorXd& y) { return springs_.Energy(y); }, &x);
+    }
     MinimizerSummary summary;
     if (HoldConditions(rig_, conditions, &x, &held_)) {
       MinimizerProblem problem;
@@ -72,107 +254,283 @@ class PathSolver {
       problem.diagonal_shift = conditions.diagonal_shift;
       problem.diagonal = rig_.summary().bounding_box_diagonal;
       problem.mean_rest_length = rig_.summary().mean_rest_length;
+      problem.stop = stop_;
       MinimizerTiming timing;
       problem.timing = &timing;
       minimizer_->Minimize(problem, &x, &summary);
     }
+    if (summary.termination == MinimizerTermination::kCancelled) {
+      throw Error(ErrorCode::kCancelled, "the rig build was cancelled");
+    }
     const bool converged = summary.termination == MinimizerTermination::kConverged;
-    report.newton_iterations += summary.iterations;
-    if (!converged && tentative) return {Eigen::MatrixXf(), std::numeric_limits<double>::infinity()};
-    ++report.samples;
-    if (!converged) ++report.unconverged;
+    path_->newton_iterations += summary.iterations;
+    if (std::getenv("SPRINGBLEND_PATH_DEBUG")) {
+      fmt::print(stderr, "solve target {} alpha {:.6f} {} iterations {} cg {} factorizations {} residual {:.2e} -> {:.2e} {}\n",
+                 target_, alpha, correction ? "from-interpolant" : "predicted", summary.iterations, summary.cg_iterations,
+                 summary.factorizations, summary.initial_residual, summary.residual, summary.message);
+    }
+    if (!converged && tentative) return {alpha, Eigen::MatrixXf(), std::numeric_limits<double>::infinity(), false};
+    ++path_->solves;
     Points solved(n, 3);
     for (int v = 0; v < n; ++v) solved.row(v) = x.segment<3>(3 * v).transpose();
     if (conditions.mode == BoundaryMode::kFloating) {
       AlignRigidly(linear.topRows(rig_.num_surface_vertices()), &solved);
     }
-    if (!solved.allFinite()) solved = linear;  // a broken sample only costs its frames a worse start
-    predictor.Add(solved, conditions.motion, weights, converged);
-    Points correction = solved - linear;
-    if (conditions.motion) correction = correction * conditions.motion->rotation.toRotationMatrix();  // R^T per row
-    return {correction.cast<float>(), converged ? summary.energy : std::numeric_limits<double>::infinity()};
+    const bool finite = solved.allFinite();
+    if (!finite) solved = linear;  // a broken sample only costs its frames a worse start
+    if (predictor != nullptr) predictor->Add(solved, conditions.motion, weights, converged && finite);  // either start
+    Points corrected = solved - linear;
+    if (conditions.motion) corrected = corrected * conditions.motion->rotation.toRotationMatrix();  // R^T per row
+    return {alpha, corrected.cast<float>(),
+            converged && finite ? summary.energy : std::numeric_limits<double>::infinity(), converged && finite};
   }
 
  private:
   const Rig& rig_;
   int target_;
+  const std::function<bool()>* stop_;
+  TargetPath* path_;
   SpringSystem springs_;
   LinearSystem linear_;
   std::unique_ptr<Minimizer> minimizer_;
   std::vector<char> held_;
 };
 
-}  // namespace
+// Largest distance of a vertex between two corrections.
+double Distance(const Eigen::MatrixXd& a, const Eigen::MatrixXf& b) {
+  return std::sqrt((a - b.cast<double>()).rowwise().squaredNorm().maxCoeff());
+}
 
-std::vector<TargetPath> BuildTargetPaths(const Rig& rig, int intervals, double extension, TargetPathsReport* report) {
+void BuildPath(const Rig& rig, int target, const TargetPathsOptions& options, TargetPath* path) {
   const auto start = std::chrono::steady_clock::now();
-  const int targets = rig.num_shapes();
-  std::vector<TargetPath> paths(targets);
-  std::vector<TargetPathsReport> reports(targets);
-  const double step = 1.0 / intervals;
-  const int below = static_cast<int>(std::ceil(extension * intervals - 1e-9));
-  const int above = intervals + below;
-  tbb::parallel_for(0, targets, [&](int t) {
-    if (!rig.target_changes_lengths(t)) return;
-    PathSolver solver(rig, t);
-    TargetPath& path = paths[t];
-    path.step = step;
-    path.first = -below;
-    // The rest shape (alpha 0) and the target (alpha 1) are both equilibria of zero energy. Follow the path
-    // up from the rest shape and down from the target, and keep at each alpha the equilibrium of lower
-    // energy, so both ends are reproduced exactly and the choice between branches depends on the alpha
-    // alone. Beyond [0, 1], continue from the nearer end.
-    std::vector<PathSolver::Sample> up, down;
-    Predictor from_rest;
-    for (int k = 0; k <= intervals; ++k) up.push_back(solver.Refined((k - 1) * step, k * step, from_rest, reports[t]));
-    std::vector<Eigen::MatrixXf> inside(intervals + 1);
-    for (int k = 0; k <= intervals; ++k) inside[k] = up[k].correction;
-    // When the way up ends on the target itself, the way down would retrace it: skip it.
-    const double reached = up.back().correction.cwiseAbs().maxCoeff();
-    if (!(reached <= 1e-6 * rig.summary().bounding_box_diagonal)) {
-      Predictor from_target;
-      for (int k = intervals; k >= 0; --k) {
-        down.push_back(solver.Refined((k + 1) * step, k * step, from_target, reports[t]));
+  PathSolver solver(rig, target, options.tolerance, options.stop, path);
+  const double diagonal = rig.summary().bounding_box_diagonal;
+  const double h = 1.0 / options.intervals;
+  // The knots of [0, 1]: the rest shape, the target's in-betweens and the target, each the sculpted shape of
+  // its weight (an equilibrium of zero energy, unless a mask changed it).
+  std::vector<double> knots = {0.0};
+  for (const auto& knot : rig.internals().controls.targets[target]) knots.push_back(knot.weight);
+  std::vector<double> kinks(knots.begin() + 1, knots.end() - 1);  // the in-betweens: the path may bend there
+  // Per segment between two knots: the sweep up from the lower knot; where it does not end on the upper
+  // knot's shape, the sweep down from that too, and one switch from the up branch to the down branch at the
+  // first base sample where the down branch's energy is lower.
+  std::vector<Sample> inside;
+  std::vector<int> switches;  // in `inside`: intervals from an up branch to a down branch
+  Sample lower = solver.End(0.0, nullptr);
+  for (size_t j = 0; j + 1 < knots.size(); ++j) {
+    const double a = knots[j], b = knots[j + 1];
+    const int steps = std::max(1, static_cast<int>(std::ceil((b - a) / h - 1e-9)));
+    std::vector<double> grid;
+    for (int k = 0; k <= steps; ++k) grid.push_back(k == steps ? b : a + (b - a) * k / steps);
+    std::vector<Sample> up;
+    Predictor from_lower;
+    solver.Anchor(lower, &from_lower);
+    up.push_back(std::move(lower));
+    for (size_t k = 1; k < grid.size(); ++k) solver.Refined(grid[k - 1], grid[k], from_lower, &up);
+    Sample upper = solver.End(b, nullptr);
+    if (up.back().converged && Distance(upper.correction.cast<double>(), up.back().correction) <=
+                                   options.tolerance * diagonal) {
+      up.pop_back();
+      inside.insert(inside.end(), std::make_move_iterator(up.begin()), std::make_move_iterator(up.end()));
+      lower = std::move(upper);
+      continue;
+    }
+    std::vector<Sample> down;
+    Predictor from_upper;
+    solver.Anchor(upper, &from_upper);
+    for (size_t k = grid.size() - 1; k-- > 1;) {
+      std::vector<Sample> part;
+      solver.Refined(grid[k + 1], grid[k], from_upper, &part);
+      down.insert(down.end(), std::make_move_iterator(part.begin()), std::make_move_iterator(part.end()));
+    }
+    std::reverse(down.begin(), down.end());  // ascending, above a
+    const auto energy_at = [](const std::vector<Sample>& samples, double alpha) {
+      for (const Sample& s : samples) {
+        if (s.alpha == alpha) return s.energy;
       }
-      std::reverse(down.begin(), down.end());
-      for (int k = 0; k <= intervals; ++k) {
-        if (down[k].energy < up[k].energy) inside[k] = down[k].correction;
+      return std::numeric_limits<double>::infinity();
+    };
+    double switch_at = b;
+    for (size_t k = 1; k + 1 < grid.size(); ++k) {
+      if (energy_at(down, grid[k]) < energy_at(up, grid[k])) {
+        switch_at = grid[k];
+        break;
       }
     }
-    const auto continue_from = [&](int end, int direction, int count, std::vector<Eigen::MatrixXf>* out) {
-      // The predictor starts from the chosen end sample (a converged equilibrium).
-      Predictor predictor;
-      std::vector<double> weights(targets, 0.0);
-      weights[t] = end * step;
-      Points positions = rig.shape(0);
-      if (end != 0) positions += weights[t] * (rig.shape(t + 1) - rig.shape(0));
-      Points correction = inside[end].cast<double>();
-      std::optional<AnchorMotion> motion;
-      if (rig.boundary_mode() == BoundaryMode::kAnchored) {
-        motion = BlendAnchorMotions(rig.internals().anchor_motions, weights);
-        correction = correction * motion->rotation.toRotationMatrix().transpose();
-      }
-      predictor.Add(positions + correction, motion, weights, true);
-      for (int k = 1; k <= count; ++k) {
-        out->push_back(
-            solver.Refined((end + direction * (k - 1)) * step, (end + direction * k) * step, predictor, reports[t])
-                .correction);
-      }
-    };
-    std::vector<Eigen::MatrixXf> beyond_one, before_zero;
-    continue_from(intervals, +1, above - intervals, &beyond_one);
-    continue_from(0, -1, below, &before_zero);
-    path.corrections.assign(before_zero.rbegin(), before_zero.rend());
-    path.corrections.insert(path.corrections.end(), inside.begin(), inside.end());
-    path.corrections.insert(path.corrections.end(), beyond_one.begin(), beyond_one.end());
-  });
-  for (const TargetPathsReport& r : reports) {
-    report->samples += r.samples;
-    report->unconverged += r.unconverged;
-    report->newton_iterations += r.newton_iterations;
+    for (Sample& s : up) {
+      if (s.alpha < switch_at) inside.push_back(std::move(s));
+    }
+    switches.push_back(static_cast<int>(inside.size()) - 1);
+    for (Sample& s : down) {
+      if (s.alpha >= switch_at) inside.push_back(std::move(s));
+    }
+    lower = std::move(upper);
   }
-  report->ms = std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - start).count();
+  inside.push_back(std::move(lower));  // the target
+  // Beyond [0, 1]: continuation from the ends.
+  const int beyond = static_cast<int>(std::ceil(options.extension * options.intervals - 1e-9));
+  std::vector<Sample> above, below;
+  {
+    Predictor predictor;
+    solver.Anchor(inside.back(), &predictor);
+    for (int k = 1; k <= beyond; ++k) solver.Refined(1.0 + (k - 1) * h, 1.0 + k * h, predictor, &above);
+  }
+  {
+    Predictor predictor;
+    solver.Anchor(inside.front(), &predictor);
+    for (int k = 1; k <= beyond; ++k) solver.Refined(-(k - 1) * h, -k * h, predictor, &below);
+  }
+  std::vector<Sample> samples(below.rbegin(), below.rend());
+  samples.insert(samples.end(), std::make_move_iterator(inside.begin()), std::make_move_iterator(inside.end()));
+  samples.insert(samples.end(), std::make_move_iterator(above.begin()), std::make_move_iterator(above.end()));
+  for (size_t i = 0; i < samples.size(); ++i) {
+    path->alphas.push_back(samples[i].alpha);
+    path->corrections.push_back(std::move(samples[i].correction));
+    if (!samples[i].converged) ++path->unconverged;
+  }
+  path->breaks.assign(path->alphas.size(), 0);
+  for (size_t i = 0; i < path->alphas.size(); ++i) {
+    for (double w : kinks) path->breaks[i] |= path->alphas[i] == w ? 1 : 0;
+  }
+  path->certified.assign(path->alphas.size() - 1, kUnchecked);
+  for (int i : switches) path->certified[below.size() + i] = kSwitch;
+
+  // Certify: check every interval's midpoint against an equilibrium solved from the interpolant there; split
+  // those that fail (down to 1/64 of the base step) and check again the intervals whose interpolant changed.
+  const double min_width = h / 64.0;
+  std::vector<double> errors(path->certified.size(), 0.0);
+  std::vector<double> parent_error(path->certified.size(), 0.0);  // the error of the interval split into this one
+  for (;;) {
+    std::vector<Sample> added;
+    std::vector<int> split;
+    for (size_t i = 0; i + 1 < path->alphas.size(); ++i) {
+      if (path->certified[i] != kUnchecked) continue;
+      const double a = path->alphas[i], b = path->alphas[i + 1];
+      const double m = 0.5 * (a + b);
+      if (path->samples() + static_cast<int>(added.size()) >= options.max_samples || b - a <= min_width) {
+        path->certified[i] = 0;
+        continue;
+      }
+      Eigen::MatrixXd predicted;
+      EvaluatePath(*path, m, &predicted);
+      Sample check = solver.Solve(m, nullptr, &predicted);
+      const double error = check.converged ? Distance(predicted, check.correction) / diagonal
+                                           : std::numeric_limits<double>::infinity();
+      errors[i] = error;
+      if (std::getenv("SPRINGBLEND_PATH_DEBUG")) {
+        fmt::print(stderr, "target {} [{:.6f}, {:.6f}] error {:.3e} energy {:.6e} iterations {}\n", target, a, b,
+                   error, check.energy, path->newton_iterations);
+      }
+      if (error <= options.tolerance) {
+        path->certified[i] = 1;
+      } else if (parent_error[i] > 0.0 && error > 0.25 * parent_error[i]) {
+        // Halving the interval did not bring the error down as a smooth path's would (by 8 to 16): the
+        // equilibria there are not one smooth branch (a fold, a kink, nearby minima). More samples would not
+        // certify it; frames there finish by a full solve when the local one fails.
+        path->certified[i] = 0;
+      } else {
+        split.push_back(static_cast<int>(i));
+        added.push_back(std::move(check));
+      }
+    }
+    if (split.empty()) break;
+    // Insert the midpoints; the split intervals' halves and their neighbours (whose tangents changed) are
+    // checked again.
+    TargetPath next;
+    next.breaks.clear();
+    std::vector<std::uint8_t> certified;
+    std::vector<double> next_errors, next_parent;
+    size_t s = 0;
+    for (size_t i = 0; i < path->alphas.size(); ++i) {
+      next.alphas.push_back(path->alphas[i]);
+      next.corrections.push_back(std::move(path->corrections[i]));
+      next.breaks.push_back(path->breaks[i]);
+      if (i + 1 == path->alphas.size()) break;
+      if (s < split.size() && split[s] == static_cast<int>(i)) {
+        if (!added[s].converged) ++path->unconverged;
+        next.alphas.push_back(added[s].alpha);
+        next.corrections.push_back(std::move(added[s].correction));
+        next.breaks.push_back(0);
+        certified.push_back(kUnchecked);
+        certified.push_back(kUnchecked);
+        next_errors.push_back(0.0);
+        next_errors.push_back(0.0);
+        next_parent.push_back(errors[i]);
+        next_parent.push_back(errors[i]);
+        ++s;
+      } else {
+        const bool neighbour = std::binary_search(split.begin(), split.end(), static_cast<int>(i) - 1) ||
+                               std::binary_search(split.begin(), split.end(), static_cast<int>(i) + 1);
+        certified.push_back(neighbour && path->certified[i] != kSwitch ? kUnchecked : path->certified[i]);
+        next_errors.push_back(errors[i]);
+        next_parent.push_back(parent_error[i]);
+      }
+    }
+    path->alphas = std::move(next.alphas);
+    path->corrections = std::move(next.corrections);
+    path->breaks = std::move(next.breaks);
+    path->certified = std::move(certified);
+    errors = std::move(next_errors);
+    parent_error = std::move(next_parent);
+  }
+  // Every certified interval was last checked against the final interpolant.
+  path->max_error = 0.0;
+  for (size_t i = 0; i < errors.size(); ++i) {
+    if (path->certified[i] == 1) path->max_error = std::max(path->max_error, errors[i]);
+  }
+  path->build_ms = Elapsed(start);
+}
+
+}  // namespace
+
+int TargetPath::uncertified() const {
+  return static_cast<int>(std::count(certified.begin(), certified.end(), std::uint8_t{0}));
+}
+
+std::int64_t TargetPath::bytes() const {
+  std::int64_t total = static_cast<std::int64_t>(alphas.size() * (sizeof(double) + 2));
+  for (const Eigen::MatrixXf& c : corrections) total += static_cast<std::int64_t>(c.size() * sizeof(float));
+  return total;
+}
+
+bool TargetChangesLengths(const Rig& rig, int target) {
+  for (const auto& knot : rig.internals().controls.targets[target]) {
+    if (rig.target_changes_lengths(knot.shape)) return true;
+  }
+  return false;
+}
+
+std::vector<TargetPath> BuildTargetPaths(const Rig& rig, const TargetPathsOptions& options, TargetPathsReport* report) {
+  const auto start = std::chrono::steady_clock::now();
+  const int targets = rig.num_targets();
+  std::vector<TargetPath> paths(targets);
+  std::mutex mutex;
+  tbb::parallel_for(0, targets, [&](int t) {
+    if (!TargetChangesLengths(rig, t)) return;
+    BuildPath(rig, t, options, &paths[t]);
+    if (options.done) {
+      std::lock_guard lock(mutex);
+      options.done(t, paths[t]);
+    }
+  });
+  for (const TargetPath& p : paths) {
+    report->samples += p.samples();
+    report->solves += p.solves;
+    report->unconverged += p.unconverged;
+    report->uncertified += p.uncertified();
+    report->newton_iterations += p.newton_iterations;
+    report->max_error = std::max(report->max_error, p.max_error);
+  }
+  report->ms = Elapsed(start);
   return paths;
+}
+
+void EvaluatePath(const TargetPath& path, double alpha, Eigen::MatrixXd* correction) {
+  const Stencil stencil = StencilAt(path, alpha);
+  *correction = Eigen::MatrixXd::Zero(path.corrections[0].rows(), 3);
+  for (int i = 0; i < stencil.count; ++i) {
+    if (stencil.weight[i] != 0.0) *correction += stencil.weight[i] * path.corrections[stencil.sample[i]].cast<double>();
+  }
 }
 
 void AddPathCorrections(const std::vector<TargetPath>& paths, const std::vector<double>& weights,
@@ -183,27 +541,133 @@ void AddPathCorrections(const std::vector<TargetPath>& paths, const std::vector<
   for (size_t t = 0; t < paths.size() && t < weights.size(); ++t) {
     const TargetPath& path = paths[t];
     if (path.empty() || weights[t] == 0.0) continue;
-    const int samples = static_cast<int>(path.corrections.size());
-    if (samples < 2) continue;
-    // Position on the samples, held at the ends beyond them.
-    double u = weights[t] / path.step - path.first;
-    u = std::clamp(u, 0.0, static_cast<double>(samples - 1));
-    const int k = std::min(static_cast<int>(std::floor(u)), samples - 2);
-    const double s = u - k;
-    // Catmull-Rom through samples k-1..k+2 (end tangents from one-sided differences).
-    const Eigen::MatrixXd p1 = path.corrections[k].cast<double>();
-    const Eigen::MatrixXd p2 = path.corrections[k + 1].cast<double>();
-    const Eigen::MatrixXd p0 = k > 0 ? Eigen::MatrixXd(path.corrections[k - 1].cast<double>()) : Eigen::MatrixXd(2.0 * p1 - p2);
-    const Eigen::MatrixXd p3 =
-        k + 2 < samples ? Eigen::MatrixXd(path.corrections[k + 2].cast<double>()) : Eigen::MatrixXd(2.0 * p2 - p1);
-    const double s2 = s * s, s3 = s2 * s;
-    sum += 0.5 * (2.0 * p1 + (p2 - p0) * s + (2.0 * p0 - 5.0 * p1 + 4.0 * p2 - p3) * s2 +
-                  (3.0 * p1 - p0 - 3.0 * p2 + p3) * s3);
+    const Stencil stencil = StencilAt(path, weights[t]);
+    for (int i = 0; i < stencil.count; ++i) {
+      if (stencil.weight[i] != 0.0) sum += stencil.weight[i] * path.corrections[stencil.sample[i]].cast<double>();
+    }
     any = true;
   }
   if (!any) return;
   if (motion) sum = sum * motion->rotation.toRotationMatrix().transpose();  // R per row
   for (Eigen::Index v = 0; v < n; ++v) x->segment<3>(3 * v) += sum.row(v).transpose();
+}
+
+namespace {
+
+template <typename T>
+void Put(std::string* out, const T& value) {
+  out->append(reinterpret_cast<const char*>(&value), sizeof(T));
+}
+
+class Cursor {
+ public:
+  explicit Cursor(const std::string& in) : in_(in) {}
+  template <typename T>
+  bool Get(T* value) {
+    if (sizeof(T) > in_.size() - at_) return false;
+    std::memcpy(value, in_.data() + at_, sizeof(T));
+    at_ += sizeof(T);
+    return true;
+  }
+  bool GetBytes(void* out, size_t n) {
+    if (n > in_.size() - at_) return false;
+    if (n > 0) std::memcpy(out, in_.data() + at_, n);
+    at_ += n;
+    return true;
+  }
+  size_t left() const { return in_.size() - at_; }
+
+ private:
+  const std::string& in_;
+  size_t at_ = 0;
+};
+
+}  // namespace
+
+std::string SerializeTargetPaths(const std::vector<TargetPath>& paths) {
+  std::string out(kPathsMagic, sizeof(kPathsMagic));
+  const std::uint32_t vertices = [&] {
+    for (const TargetPath& p : paths) {
+      if (!p.empty()) return static_cast<std::uint32_t>(p.corrections[0].rows());
+    }
+    return std::uint32_t{0};
+  }();
+  Put<std::uint32_t>(&out, static_cast<std::uint32_t>(paths.size()));
+  Put<std::uint32_t>(&out, vertices);
+  for (const TargetPath& p : paths) {
+    Put<std::uint32_t>(&out, static_cast<std::uint32_t>(p.samples()));
+    if (p.empty()) continue;
+    Put<double>(&out, p.max_error);
+    Put<std::int32_t>(&out, p.solves);
+    Put<std::int32_t>(&out, p.newton_iterations);
+    Put<std::int32_t>(&out, p.unconverged);
+    for (double a : p.alphas) Put<double>(&out, a);
+    out.append(reinterpret_cast<const char*>(p.breaks.data()), p.breaks.size());
+    out.append(reinterpret_cast<const char*>(p.certified.data()), p.certified.size());
+    for (const Eigen::MatrixXf& c : p.corrections) {
+      out.append(reinterpret_cast<const char*>(c.data()), sizeof(float) * static_cast<size_t>(c.size()));
+    }
+  }
+  return out;
+}
+
+std::optional<std::vector<TargetPath>> ParseTargetPaths(const std::string& bytes, int targets, int vertices,
+                                                        std::string* why) {
+  Cursor in(bytes);
+  char magic[sizeof(kPathsMagic)];
+  if (!in.GetBytes(magic, sizeof(magic)) || std::memcmp(magic, kPathsMagic, sizeof(magic)) != 0) {
+    *why = "not target paths of this version";
+    return std::nullopt;
+  }
+  std::uint32_t count = 0, rows = 0;
+  if (!in.Get(&count) || !in.Get(&rows)) {
+    *why = "truncated";
+    return std::nullopt;
+  }
+  if (static_cast<int>(count) != targets) {
+    *why = fmt::format("{} paths for {} targets", count, targets);
+    return std::nullopt;
+  }
+  std::vector<TargetPath> paths(count);
+  for (TargetPath& p : paths) {
+    std::uint32_t samples = 0;
+    if (!in.Get(&samples)) {
+      *why = "truncated";
+      return std::nullopt;
+    }
+    if (samples == 0) continue;
+    if (static_cast<int>(rows) != vertices) {
+      *why = fmt::format("paths of {} vertices for a rig of {}", rows, vertices);
+      return std::nullopt;
+    }
+    const size_t need = samples * (sizeof(double) + 2 + sizeof(float) * 3 * static_cast<size_t>(rows));
+    if (samples < 2 || need > in.left()) {
+      *why = "truncated";
+      return std::nullopt;
+    }
+    bool ok = in.Get(&p.max_error) && in.Get(&p.solves) && in.Get(&p.newton_iterations) &&
+              in.Get(&p.unconverged);
+    p.alphas.resize(samples);
+    p.breaks.resize(samples);
+    p.certified.resize(samples - 1);
+    ok = ok && in.GetBytes(p.alphas.data(), sizeof(double) * samples) && in.GetBytes(p.breaks.data(), samples) &&
+         in.GetBytes(p.certified.data(), samples - 1);
+    for (std::uint32_t k = 0; ok && k < samples; ++k) {
+      Eigen::MatrixXf c(rows, 3);
+      ok = in.GetBytes(c.data(), sizeof(float) * 3 * static_cast<size_t>(rows)) && c.allFinite();
+      p.corrections.push_back(std::move(c));
+    }
+    for (std::uint32_t k = 0; ok && k + 1 < samples; ++k) ok = std::isfinite(p.alphas[k]) && p.alphas[k] < p.alphas[k + 1];
+    if (!ok) {
+      *why = "malformed samples";
+      return std::nullopt;
+    }
+  }
+  if (in.left() != 0) {
+    *why = "trailing bytes";
+    return std::nullopt;
+  }
+  return paths;
 }
 
 }  // namespace springblend::internal

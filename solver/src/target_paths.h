@@ -1,15 +1,24 @@
-// Each target's own path, for stateless frames: at rig build, the equilibria of alpha * target for alpha
-// sampled over [-extension, 1 + extension], each solved by continuation from the one before (the paper's
-// sweep) up from the rest shape and, when that does not end on the target, down from the target, keeping at
-// each alpha the one of lower energy (so alpha 0 and 1 are the rest shape and the target exactly), and kept as the physical correction (solved
-// minus linear blend) in the anchor's frame. A frame starts
-// from the linear blend plus each active target's correction at its weight: a single-target frame starts on
-// the branch the sweep follows, any frame starts close to its answer, and the answer is a function of the
-// frame alone.
+// Each target's own path, for stateless frames and for the frames that move one target: at rig build, the
+// equilibria of the target alone at weight alpha, alpha over [-extension, 1 + extension] (in-betweens blend in
+// as the frame's weights would), kept as the physical correction (solved minus linear blend, in the anchor's
+// frame) at adaptively chosen samples and interpolated by cubic Hermite splines.
+//
+// One branch per path, chosen deterministically:
+//  - the sweep up from the rest shape (continuation at the base step, halved where Newton does not converge);
+//  - where it does not end on the target, the sweep down from the target too, and one switch between them:
+//    the up branch below the first base sample where the down branch's energy is lower, the down branch from
+//    there on (so alpha 0 and 1 are the rest shape and the target exactly, and the choice is per interval);
+//  - beyond [0, 1], continuation from the nearer end.
+// Certified: every interval (but the switch between two branches) is split until the interpolant at its
+// midpoint is within `tolerance` of the diagonal of an equilibrium solved there from it (the check is made
+// against the final samples: an interval next to a new sample is checked again), up to a cap on samples.
 #pragma once
 
 #include <Eigen/Core>
+#include <cstdint>
+#include <functional>
 #include <optional>
+#include <string>
 #include <vector>
 
 #include "anchor.h"
@@ -18,26 +27,63 @@
 namespace springblend::internal {
 
 struct TargetPath {
-  double step = 0.0;  // alpha between samples
-  int first = 0;      // sample k is at alpha = (first + k) * step
-  std::vector<Eigen::MatrixXf> corrections;  // per sample: #vertices by 3, in the anchor's frame
+  std::vector<double> alphas;                 // ascending sample weights of the target; 0 and 1 among them
+  std::vector<Eigen::MatrixXf> corrections;   // per sample: #vertices by 3, in the anchor's frame
+  std::vector<std::uint8_t> breaks;           // per sample: 1 at an in-between's weight (a kink: one-sided tangents)
+  // Per interval (alphas.size() - 1): 1 where the midpoint check passed, 0 where it did not within the cap,
+  // 2 for the interval that switches from the up branch to the down branch.
+  std::vector<std::uint8_t> certified;
+  double max_error = 0.0;   // largest midpoint error over the certified intervals, of the diagonal
+  double build_ms = 0.0;    // wall time of this path's build
+  int solves = 0;           // equilibria solved for it (samples and checks)
+  int newton_iterations = 0;
+  int unconverged = 0;      // samples whose solve did not converge (kept as the best found)
   bool empty() const { return corrections.empty(); }
+  int samples() const { return static_cast<int>(alphas.size()); }
+  int uncertified() const;  // intervals whose check did not pass (the branch switch not counted)
+  std::int64_t bytes() const;
+};
+
+struct TargetPathsOptions {
+  int intervals = 32;          // base samples per unit of alpha (the sweeps' continuation step)
+  double extension = 0.25;     // beyond [0, 1] on both sides
+  double tolerance = 1e-6;     // midpoint error, of the bounding-box diagonal
+  int max_samples = 96;        // per target
+  const std::function<bool()>* stop = nullptr;  // asked between solves and Newton iterations
+  // Called after each target's path is done (from the building thread, serialized by the caller's lock).
+  std::function<void(int target, const TargetPath& path)> done;
 };
 
 struct TargetPathsReport {
-  int samples = 0;      // equilibria solved
+  int samples = 0;      // samples kept, over the targets
+  int solves = 0;       // equilibria solved (samples and midpoint checks)
   int unconverged = 0;  // samples whose solve did not converge (kept as the best found)
+  int uncertified = 0;  // intervals whose midpoint check did not pass within the cap
   int newton_iterations = 0;
+  double max_error = 0.0;
   double ms = 0.0;
 };
 
-// Solves every target's path: `intervals` samples per unit of alpha, `extension` beyond [0, 1] on both
-// sides. Targets run in parallel. Targets that change no rest length get an empty path.
-std::vector<TargetPath> BuildTargetPaths(const Rig& rig, int intervals, double extension, TargetPathsReport* report);
+// Whether any sculpted shape of the target changes a rest length (else its path is the linear blend).
+bool TargetChangesLengths(const Rig& rig, int target);
 
-// x += sum_t R correction_t(w_t), stacked 3n: each path interpolated (Catmull-Rom) at its weight (held at
-// its end sample beyond the sampled range), rotated by the frame's anchor rotation R.
+// Solves every target's path (targets run in parallel). Targets that change no rest length get an empty path.
+// Throws Error(kCancelled) when `options.stop` says stop.
+std::vector<TargetPath> BuildTargetPaths(const Rig& rig, const TargetPathsOptions& options, TargetPathsReport* report);
+
+// The path's correction at alpha (#vertices by 3, anchor's frame): cubic Hermite between the samples with
+// three-point tangents, held at the end samples beyond them.
+void EvaluatePath(const TargetPath& path, double alpha, Eigen::MatrixXd* correction);
+
+// x += sum_t R correction_t(w_t), stacked 3n, over the targets' frame weights, rotated by the frame's anchor
+// rotation R.
 void AddPathCorrections(const std::vector<TargetPath>& paths, const std::vector<double>& weights,
                         const std::optional<AnchorMotion>& motion, Eigen::VectorXd* x);
+
+// The paths as bytes (versioned, little-endian) and back. Parse returns nullopt, with the reason in *why, when
+// the bytes are not paths of this rig (version, target count, vertex count, sizes).
+std::string SerializeTargetPaths(const std::vector<TargetPath>& paths);
+std::optional<std::vector<TargetPath>> ParseTargetPaths(const std::string& bytes, int targets, int vertices,
+                                                        std::string* why);
 
 }  // namespace springblend::internal

@@ -12,6 +12,7 @@ enum class ErrorCode {
   kNotFound,      // a named thing (file, target, character) does not exist
   kNumerical,     // the solve broke down (non-finite values, a factorization that failed)
   kInternal,      // a bug in springblend
+  kCancelled,     // the caller's stop check said stop (a cancelled request, a deadline, a shutdown)
 };
 
 const char* ToString(ErrorCode code);

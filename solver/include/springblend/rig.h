@@ -6,6 +6,7 @@
 
 #include <array>
 #include <cstdint>
+#include <functional>
 #include <memory>
 #include <optional>
 #include <string>
@@ -77,15 +78,20 @@ struct RigOptions {
   // stitched to the head it belongs to.
   bool hold_outer_rim = false;
 
-  // Stateless frames: solve each target's own path alpha * target for alpha from -path_extension to
-  // 1 + path_extension, path_intervals samples per unit, by continuation from the rest shape (the paper's
-  // sweep), and keep the physical corrections. Every frame then starts from the linear blend plus each
-  // target's correction at its weight: a single-target frame lands on the sweep's branch, every frame
-  // starts close to its answer, and no frame depends on another. Costs (targets x samples) solves at build,
-  // run in parallel over the targets. Range: intervals [1, 64], extension [0, 2].
+  // Stateless frames: solve each target's own path (the target alone at weight alpha, its in-betweens
+  // included) for alpha from -path_extension to 1 + path_extension, by continuation from the rest shape (the
+  // paper's sweep) at path_intervals steps per unit, one branch per target, and keep the physical corrections.
+  // Every frame then starts from the linear blend plus each target's correction at its weight: a
+  // single-target frame starts within path_tolerance of its answer and is finished where it is out of balance
+  // only, every frame starts close to its answer, and no frame depends on another. Certified: an interval is
+  // split until the interpolant at its midpoint is within path_tolerance (of the bounding-box diagonal) of an
+  // equilibrium solved there, up to path_max_samples per target. Run in parallel over the targets.
+  // Range: intervals [1, 64], extension [0, 2], tolerance (0, 0.1], max samples [4, 1024].
   bool target_paths = true;
-  int path_intervals = 8;
+  int path_intervals = 32;
   double path_extension = 0.25;
+  double path_tolerance = 1e-6;
+  int path_max_samples = 96;
 
   // Throws Error(kInvalidInput) naming the field that is out of range.
   void Validate() const;
@@ -130,9 +136,24 @@ struct RigSummary {
   double bounding_box_diagonal = 0.0;
   double mean_rest_length = 0.0;
   std::int64_t hessian_nonzeros = 0;  // stored entries of the upper triangle
-  int path_samples = 0;              // equilibria solved along the targets' paths
-  int unconverged_path_samples = 0;  // of those, the ones that did not converge (best found kept)
+  int path_samples = 0;              // samples kept along the targets' paths
+  int path_solves = 0;               // equilibria solved for them (samples and midpoint checks)
+  int unconverged_path_samples = 0;  // samples that did not converge (best found kept)
+  int uncertified_path_intervals = 0;  // intervals whose midpoint check did not pass within the sample cap
+  double path_max_error = 0.0;       // largest certified midpoint error, of the diagonal
   double path_ms = 0.0;              // time spent on the paths (part of precompute_ms)
+  bool paths_loaded = false;         // the paths came from RigBuildControl::precomputed, not solved
+  std::int64_t path_bytes = 0;       // memory the paths hold
+  std::int64_t rig_bytes = 0;        // memory the rig holds without its paths (estimate: arrays it keeps)
+  struct TargetPathSummary {
+    std::string target;
+    int samples = 0;
+    int solves = 0;
+    int uncertified = 0;
+    double max_error = 0.0;  // of the diagonal
+    double ms = 0.0;         // wall time of its build (0 when loaded)
+  };
+  std::vector<TargetPathSummary> paths;  // one per target with a path
   double precompute_ms = 0.0;
   std::vector<std::string> notes;  // decisions taken while building, in words
 };
@@ -155,6 +176,26 @@ struct TargetSpec {
   std::vector<std::string> combination;  // >= 2 distinct names of targets that are not combinations; empty: ordinary
 };
 
+// How a rig build goes: what it reports, when it stops, what it may reuse.
+struct RigBuildProgress {
+  std::string stage;  // "springs", "interior", "analysis", "placement", "paths", "done"
+  int targets = 0;              // with a path to build
+  int targets_done = 0;
+  int samples_done = 0;         // path samples kept by the targets done
+  double elapsed_ms = 0.0;
+};
+struct RigBuildControl {
+  // Asked between path samples and Newton iterations; when it says true the build ends with
+  // Error(kCancelled). Called on the building threads, possibly concurrently.
+  std::function<bool()> stop;
+  // Told of each stage and each target's path as it is done (serialized; on a building thread).
+  std::function<void(const RigBuildProgress&)> progress;
+  // Rig::SavePrecomputed of a rig built from the same meshes and options: its target paths are used rather
+  // than solved. Bytes that do not fit this rig (another version, target or vertex count) are not used: the
+  // paths are solved and a note says why.
+  const std::string* precomputed = nullptr;
+};
+
 class Rig {
  public:
   // Validates and builds. Every target must have the rest shape's vertex count and faces. Throws Error
@@ -165,7 +206,11 @@ class Rig {
   // ("target 'jawOpen': inbetweens[1].weight = 1.5 is outside (0, 1)").
   static std::shared_ptr<const Rig> Build(TriangleMesh rest, std::vector<TargetSpec> targets,
                                           const RigOptions& options = {});
+  static std::shared_ptr<const Rig> Build(TriangleMesh rest, std::vector<TargetSpec> targets,
+                                          const RigOptions& options, const RigBuildControl& control);
   ~Rig();
+  // What is costly to rebuild (the target paths) as versioned bytes, for RigBuildControl::precomputed.
+  std::string SavePrecomputed() const;
   Rig(const Rig&) = delete;
   Rig& operator=(const Rig&) = delete;
 

@@ -97,6 +97,13 @@ struct SolveOptions {
   // weight). false: from the linear blendshape alone (slower, and a frame may land on another equilibrium
   // where thin parts can buckle either way). Either way the answer depends on the frame alone.
   bool use_target_paths = true;
+  // Finish a frame where its start is out of balance only (Newton on those vertices and rings around them,
+  // the rest held at the start, grown until every free force is within the tolerance), then the full
+  // convergence test; a full solve when that region outgrows local_finish_share of the vertices or does not
+  // converge. Single-target frames start on their certified path and finish in milliseconds; a mix frame
+  // whose start is out of balance nearly everywhere costs one force pass more. Range of the share (0, 1].
+  bool local_finish = true;
+  double local_finish_share = 0.3;
   // Contact rounds per frame (solve, catch penetrating vertices, solve again) before giving up. [1, 1000]
   int max_contact_rounds = 30;
   // Contact vertices are held this fraction of the diagonal outside the obstacle's surface. [0, 0.01]
@@ -107,6 +114,14 @@ struct SolveOptions {
 
   void Validate() const;  // throws Error(kInvalidInput) naming the field
 };
+
+// How a frame was finished.
+enum class Finish {
+  kFull,   // Newton on every free vertex
+  kLocal,  // Newton only where the start was out of balance (SolveOptions::local_finish); none if it was not
+  kNone,   // no solve (SolveOptions::linear)
+};
+const char* ToString(Finish finish);
 
 enum class Termination {
   kConverged,      // residual below tolerance
@@ -138,6 +153,10 @@ struct SolveSummary {
   int inverted_tetrahedra = 0;  // tetrahedra turned inside out in the solution (paper section 5's limit)
   int lbfgs_iterations = 0;  // kLbfgs: its own iterations (newton_iterations counts them too)
   int newton_fallbacks = 0;  // kLbfgs: 1 when Newton finished the frame
+  Finish finish = Finish::kFull;
+  int solved_vertices = 0;  // vertices Newton moved: the local region, or every free vertex
+  int free_vertices = 0;    // vertices with a free coordinate in this frame
+  std::string local_finish_note;  // why a local finish gave up (then the frame was solved in full)
   double solve_ms = 0.0;
   // Where solve_ms went: spring passes (energy, forces, Hessian blocks), linear solves (conjugate gradients
   // with their Hessian products and preconditioner, direct solves), line searches, factorizations.

@@ -1,0 +1,278 @@
+// springblend-paths-bench: what the rig's target paths buy. Per row (a rest mesh and its targets):
+//   - the rig build, and per target its path's build time, samples, solves and certified midpoint error;
+//   - the rig's memory with and without its paths (the rig's own estimate, and the resident-set growth);
+//   - path frames: each target alone at --frames off-sample alphas over [-0.25, 1.25] (the in-between weights
+//     and the extrapolated ends included when the rig has them), solved by the shipped options (a local finish
+//     from the dense path) and by the full solve from the same start (the baseline of the same run), with
+//     ms (median, max), how each frame was finished and the share of vertices solved;
+//   - accuracy: the largest distance of a path frame from the same frame solved to 1e-12 from the path's
+//     start, over the bounding-box diagonal.
+// Rows whose meshes are absent are skipped with a line. Prints a Markdown table and writes OUT/paths.md and
+// OUT/paths.json.
+#include <fmt/format.h>
+#include <malloc.h>
+
+#include <CLI/CLI.hpp>
+#include <algorithm>
+#include <chrono>
+#include <cmath>
+#include <filesystem>
+#include <fstream>
+#include <iostream>
+#include <nlohmann/json.hpp>
+#include <optional>
+#include <sstream>
+#include <string>
+#include <vector>
+
+#include "springblend/error.h"
+#include "springblend/mesh.h"
+#include "springblend/rig.h"
+#include "springblend/solve.h"
+
+namespace springblend::bench {
+namespace {
+
+namespace fs = std::filesystem;
+using Clock = std::chrono::steady_clock;
+using nlohmann::json;
+
+double MsSince(Clock::time_point start) {
+  return std::chrono::duration<double, std::milli>(Clock::now() - start).count();
+}
+
+std::optional<double> ResidentMb() {
+  std::ifstream in("/proc/self/status");
+  std::string line;
+  while (std::getline(in, line)) {
+    if (line.rfind("VmRSS:", 0) == 0) return std::stod(line.substr(6)) / 1024.0;
+  }
+  return std::nullopt;
+}
+
+struct RowSpec {
+  std::string name;
+  fs::path dir;
+  std::string rest;
+  std::vector<std::string> targets;
+};
+
+std::vector<RowSpec> AllRows(const fs::path& repo, const fs::path& shared) {
+  const fs::path data = repo / "tests" / "data";
+  return {
+      {"cylinder", data / "cylinder", "cylinder.obj", {"poses-2_cylinder-1.obj"}},
+      {"cube", data / "cube", "cube.obj", {"poses-1_cube-4.obj"}},
+      {"cheburashka", data / "cheburashka", "cheburashka.obj", {"poses-1_cheburashka-1.obj"}},
+      {"face", shared / "face6706", "generic_neutral_mesh.obj", {"jawOpen.obj"}},
+      {"face-5",
+       shared / "face6706",
+       "generic_neutral_mesh.obj",
+       {"jawOpen.obj", "mouthSmile_L.obj", "mouthSmile_R.obj", "eyeBlink_L.obj", "browInnerUp_L.obj"}},
+      {"face-16",
+       shared / "face6706",
+       "generic_neutral_mesh.obj",
+       {"browDown_L.obj", "browDown_R.obj", "browInnerUp_L.obj", "browInnerUp_R.obj", "cheekPuff_L.obj",
+        "cheekPuff_R.obj", "eyeBlink_L.obj", "eyeBlink_R.obj", "jawOpen.obj", "mouthClose.obj", "mouthFunnel.obj",
+        "mouthPucker.obj", "mouthSmile_L.obj", "mouthSmile_R.obj", "noseSneer_L.obj", "noseSneer_R.obj"}},
+      {"horse", shared / "horse", "horse-reference.obj", {"horse-01.obj"}},
+      {"cat", shared / "cat", "cat-reference.obj", {"cat-01.obj"}},
+  };
+}
+
+double Median(std::vector<double> v) {
+  if (v.empty()) return 0.0;
+  std::sort(v.begin(), v.end());
+  const size_t n = v.size();
+  return n % 2 ? v[n / 2] : 0.5 * (v[n / 2 - 1] + v[n / 2]);
+}
+
+double MaxDistance(const Points& a, const Points& b) {
+  return std::sqrt((a - b).rowwise().squaredNorm().maxCoeff());
+}
+
+struct Settings {
+  fs::path repo = SPRINGBLEND_SOURCE_DIR;
+  fs::path shared;
+  fs::path out = "bench-results";
+  std::vector<std::string> rows = {"cylinder", "cube", "cheburashka", "face", "horse", "cat"};
+  int frames = 17;
+  int targets_measured = 2;  // frames are measured on the first this many targets of a row
+  bool reference = true;
+};
+
+json RunRow(const RowSpec& spec, const Settings& settings) {
+  json row;
+  row["row"] = spec.name;
+  TriangleMesh rest = LoadMesh((spec.dir / spec.rest).string());
+  std::vector<TriangleMesh> targets;
+  for (const auto& t : spec.targets) targets.push_back(LoadMesh((spec.dir / t).string()));
+  malloc_trim(0);
+  const auto before = ResidentMb();
+  const auto start = Clock::now();
+  const std::shared_ptr<const Rig> rig = Rig::Build(std::move(rest), std::move(targets));
+  row["build_ms"] = MsSince(start);
+  malloc_trim(0);
+  const auto after = ResidentMb();
+  if (before && after) row["rig_resident_mb"] = std::max(0.0, *after - *before);
+  const RigSummary& s = rig->summary();
+  row["vertices"] = s.vertices;
+  row["targets"] = s.targets;
+  row["path_ms"] = s.path_ms;
+  row["path_mb"] = s.path_bytes / 1048576.0;
+  row["rig_mb_without_paths"] = s.rig_bytes / 1048576.0;
+  row["path_samples"] = s.path_samples;
+  row["path_solves"] = s.path_solves;
+  row["path_max_error"] = s.path_max_error;
+  row["uncertified_intervals"] = s.uncertified_path_intervals;
+  json per_target = json::array();
+  for (const auto& p : s.paths) {
+    per_target.push_back({{"target", p.target}, {"samples", p.samples}, {"solves", p.solves}, {"ms", p.ms},
+                          {"max_error", p.max_error}, {"uncertified", p.uncertified}});
+  }
+  row["paths"] = per_target;
+
+  const double diagonal = s.bounding_box_diagonal;
+  SolveOptions shipped;
+  SolveOptions full = shipped;
+  full.local_finish = false;
+  SolveOptions tight = full;
+  tight.residual_tolerance = 1e-12;
+  tight.step_tolerance = 1e-12;
+  tight.max_iterations = 400;
+  Solver path_solver(rig, shipped), full_solver(rig, full), tight_solver(rig, tight);
+  std::vector<double> path_ms, full_ms, accuracy, share;
+  int local = 0, frames = 0, converged = 0;
+  json frame_rows = json::array();
+  const int measured = std::min<int>(settings.targets_measured, rig->num_targets());
+  for (int t = 0; t < measured; ++t) {
+    for (int j = 0; j < settings.frames; ++j) {
+      // Off-sample alphas spread over [-0.25, 1.25]: a golden-ratio sequence never meets the samples'
+      // dyadic weights.
+      const double u = 0.5 + 0.6180339887498949 * j;
+      const double alpha = -0.25 + 1.5 * (u - std::floor(u));
+      Frame frame;
+      frame.weights.assign(rig->num_targets(), 0.0);
+      frame.weights[t] = alpha;
+      Points p, f, r;
+      const SolveSummary ps = path_solver.Solve(frame, &p);
+      const SolveSummary fs_ = full_solver.Solve(frame, &f);
+      ++frames;
+      converged += ps.converged() ? 1 : 0;
+      local += ps.finish == Finish::kLocal ? 1 : 0;
+      path_ms.push_back(ps.solve_ms);
+      full_ms.push_back(fs_.solve_ms);
+      share.push_back(ps.free_vertices > 0 ? static_cast<double>(ps.solved_vertices) / ps.free_vertices : 0.0);
+      json fr = {{"target", t},          {"alpha", alpha},          {"ms", ps.solve_ms},
+                 {"full_ms", fs_.solve_ms}, {"finish", ToString(ps.finish)}, {"solved", ps.solved_vertices},
+                 {"free", ps.free_vertices}, {"termination", ToString(ps.termination)},
+                 {"note", ps.local_finish_note}, {"newton", ps.newton_iterations}};
+      if (settings.reference) {
+        const SolveSummary rs = tight_solver.Solve(frame, &r);
+        const double a = MaxDistance(p, r) / diagonal;
+        accuracy.push_back(a);
+        fr["accuracy"] = a;
+        fr["reference_converged"] = rs.converged();
+        fr["full_vs_reference"] = MaxDistance(f, r) / diagonal;
+      }
+      frame_rows.push_back(fr);
+      std::cerr << fr.dump() << "\n";
+    }
+  }
+  row["frames"] = frames;
+  row["frames_converged"] = converged;
+  row["frames_local"] = local;
+  row["path_frame_ms_median"] = Median(path_ms);
+  row["path_frame_ms_max"] = path_ms.empty() ? 0.0 : *std::max_element(path_ms.begin(), path_ms.end());
+  row["full_frame_ms_median"] = Median(full_ms);
+  row["full_frame_ms_max"] = full_ms.empty() ? 0.0 : *std::max_element(full_ms.begin(), full_ms.end());
+  row["speedup_median"] = Median(path_ms) > 0 ? Median(full_ms) / Median(path_ms) : 0.0;
+  row["share_median"] = Median(share);
+  row["accuracy_max"] = accuracy.empty() ? 0.0 : *std::max_element(accuracy.begin(), accuracy.end());
+  row["frame_list"] = frame_rows;
+  return row;
+}
+
+std::string Table(const json& rows) {
+  std::ostringstream out;
+  out << "| row | vertices | targets | build s | path ms/target | samples/target | max certified error | "
+         "uncertified | path MB | rig MB w/o paths | resident MB | path frame ms median / max | full solve ms "
+         "median / max | speed-up | local | share solved | accuracy |\n";
+  out << "| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | "
+         "---: | ---: |\n";
+  for (const json& r : rows) {
+    if (r.contains("skipped")) {
+      out << fmt::format("| {} | skipped: {} |\n", r["row"].get<std::string>(), r["skipped"].get<std::string>());
+      continue;
+    }
+    const int with_paths = std::max<int>(1, static_cast<int>(r["paths"].size()));
+    double path_ms_sum = 0.0;
+    for (const auto& p : r["paths"]) path_ms_sum += p["ms"].get<double>();
+    out << fmt::format(
+        "| {} | {} | {} | {:.1f} | {:.0f} | {:.1f} | {:.1e} | {} | {:.1f} | {:.1f} | {:.0f} | {:.1f} / {:.1f} | "
+        "{:.0f} / {:.0f} | {:.0f}x | {}/{} | {:.3f} | {:.1e} |\n",
+        r["row"].get<std::string>(), r["vertices"].get<int>(), r["targets"].get<int>(),
+        r["build_ms"].get<double>() / 1000.0, path_ms_sum / with_paths,
+        static_cast<double>(r["path_samples"].get<int>()) / with_paths, r["path_max_error"].get<double>(),
+        r["uncertified_intervals"].get<int>(), r["path_mb"].get<double>(), r["rig_mb_without_paths"].get<double>(),
+        r.value("rig_resident_mb", 0.0), r["path_frame_ms_median"].get<double>(),
+        r["path_frame_ms_max"].get<double>(), r["full_frame_ms_median"].get<double>(),
+        r["full_frame_ms_max"].get<double>(), r["speedup_median"].get<double>(), r["frames_local"].get<int>(),
+        r["frames"].get<int>(), r["share_median"].get<double>(), r["accuracy_max"].get<double>());
+  }
+  return out.str();
+}
+
+}  // namespace
+}  // namespace springblend::bench
+
+int main(int argc, char** argv) {
+  using namespace springblend::bench;
+  Settings settings;
+  std::string rows;
+  CLI::App app{"springblend-paths-bench: target paths, path frames and their accuracy"};
+  app.add_option("--rows", rows, "comma-separated rows (cylinder, cube, cheburashka, face, face-5, face-16, horse, cat)");
+  app.add_option("--frames", settings.frames, "off-sample alphas per measured target")->check(CLI::Range(1, 1000));
+  app.add_option("--targets", settings.targets_measured, "targets of a row whose frames are measured")
+      ->check(CLI::Range(1, 1000));
+  app.add_option("--shared", settings.shared, "the shared meshes (default: <repo>/../shared/meshes)");
+  app.add_option("--out", settings.out, "output directory");
+  app.add_flag("!--no-reference", settings.reference, "skip the tight reference (no accuracy column)");
+  CLI11_PARSE(app, argc, argv);
+  if (settings.shared.empty()) settings.shared = settings.repo / ".." / "shared" / "meshes";
+  if (!rows.empty()) {
+    settings.rows.clear();
+    std::stringstream in(rows);
+    for (std::string r; std::getline(in, r, ',');) settings.rows.push_back(r);
+  }
+  const auto all = AllRows(settings.repo, settings.shared);
+  json results = json::array();
+  for (const std::string& name : settings.rows) {
+    const auto spec = std::find_if(all.begin(), all.end(), [&](const RowSpec& r) { return r.name == name; });
+    if (spec == all.end()) {
+      std::cerr << "unknown row " << name << "\n";
+      return 2;
+    }
+    std::string missing;
+    for (const auto& f : spec->targets) {
+      if (!fs::exists(spec->dir / f)) missing = (spec->dir / f).string();
+    }
+    if (!fs::exists(spec->dir / spec->rest)) missing = (spec->dir / spec->rest).string();
+    if (!missing.empty()) {
+      std::cout << name << ": skipped (" << missing << " not found)\n";
+      results.push_back({{"row", name}, {"skipped", missing + " not found"}});
+      continue;
+    }
+    try {
+      results.push_back(RunRow(*spec, settings));
+    } catch (const std::exception& e) {
+      results.push_back({{"row", name}, {"skipped", e.what()}});
+    }
+    std::cout << Table(json::array({results.back()})) << std::flush;
+  }
+  fs::create_directories(settings.out);
+  const std::string table = Table(results);
+  std::ofstream(settings.out / "paths.md") << "# Target paths and path frames\n\n" << table;
+  std::ofstream(settings.out / "paths.json") << results.dump(1);
+  std::cout << "\n" << table;
+  return 0;
+}

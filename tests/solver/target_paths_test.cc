@@ -1,0 +1,252 @@
+// Target paths (RigOptions::target_paths) and the frames they answer: every single-target frame, on sample or
+// off, inside [0, 1], at an in-between's weight or extrapolated, converges and equals the same frame solved
+// tightly from the same start within the certified bound; certified frames finish locally, on a part of the
+// vertices; the ends and the in-betweens are reproduced exactly; the build is deterministic, persists
+// (SavePrecomputed) and refuses bytes of another rig; a stop check ends a build within a second.
+#include <gmock/gmock.h>
+#include <gtest/gtest.h>
+
+#include <atomic>
+#include <chrono>
+#include <random>
+#include <thread>
+
+#include "springblend/rig.h"
+#include "springblend/solve.h"
+#include "test_util.h"
+
+namespace springblend {
+namespace {
+
+using ::testing::HasSubstr;
+using testing::CatchError;
+using testing::DataPath;
+using testing::MaxDistance;
+
+// The bundled cylinder bending, with an in-between: a two-segment path.
+std::shared_ptr<const Rig> Cylinder(RigOptions options = {}) {
+  TargetSpec bend;
+  bend.name = "bend";
+  bend.mesh = LoadMesh(DataPath("cylinder/poses-2_cylinder-2.obj"));
+  bend.inbetweens.push_back({0.5, LoadMesh(DataPath("cylinder/poses-2_cylinder-1.obj"))});
+  TargetSpec twist;
+  twist.name = "twist";
+  twist.mesh = LoadMesh(DataPath("cylinder/poses-1_cylinder-4.obj"));
+  std::vector<TargetSpec> specs;
+  specs.push_back(std::move(bend));
+  specs.push_back(std::move(twist));
+  return Rig::Build(LoadMesh(DataPath("cylinder/cylinder.obj")), std::move(specs), options);
+}
+
+const std::shared_ptr<const Rig>& SharedCylinder() {
+  static const std::shared_ptr<const Rig> rig = Cylinder();
+  return rig;
+}
+
+SolveOptions Tight() {
+  SolveOptions options;
+  options.local_finish = false;
+  options.residual_tolerance = 1e-12;
+  options.step_tolerance = 1e-12;
+  options.max_iterations = 400;
+  return options;
+}
+
+TEST(TargetPaths, SummaryReportsEachTargetsPath) {
+  const Rig& rig = *SharedCylinder();
+  const RigSummary& s = rig.summary();
+  ASSERT_EQ(s.paths.size(), 2u);
+  EXPECT_EQ(s.paths[0].target, "bend");
+  EXPECT_EQ(s.paths[1].target, "twist");
+  int samples = 0;
+  for (const auto& p : s.paths) {
+    EXPECT_GE(p.samples, 2);
+    EXPECT_LE(p.samples, rig.options().path_max_samples);
+    EXPECT_GE(p.solves, p.samples - 3);  // the knots in balance cost no solve
+    EXPECT_GE(p.max_error, 0.0);
+    EXPECT_LE(p.max_error, rig.options().path_tolerance);
+    samples += p.samples;
+  }
+  EXPECT_EQ(s.path_samples, samples);
+  EXPECT_FALSE(s.paths_loaded);
+  EXPECT_GT(s.path_bytes, 0);
+  EXPECT_GT(s.rig_bytes, 0);
+}
+
+TEST(TargetPaths, EndsAndInbetweensAreReproducedExactly) {
+  const auto& rig = SharedCylinder();
+  Solver solver(rig);
+  const Points rest = rig->rest().vertices;
+  const Points inbetween = LoadMesh(DataPath("cylinder/poses-2_cylinder-1.obj")).vertices;
+  const Points bend = LoadMesh(DataPath("cylinder/poses-2_cylinder-2.obj")).vertices;
+  const double tolerance = 1e-6 * rig->summary().bounding_box_diagonal;
+  const int surface = rig->num_surface_vertices();
+  EXPECT_LE(MaxDistance(solver.Start({0.0, 0.0}).topRows(surface), rest), tolerance);
+  EXPECT_LE(MaxDistance(solver.Start({0.5, 0.0}).topRows(surface), inbetween), tolerance);
+  EXPECT_LE(MaxDistance(solver.Start({1.0, 0.0}).topRows(surface), bend), tolerance);
+}
+
+// Random alphas (in-between weights, the ends, extrapolated ones among them) of each target alone: the
+// shipped solve converges and lands within the certified bound of the same frame solved to 1e-12.
+TEST(TargetPaths, PathFramesEqualTightlySolvedFrames) {
+  const auto& rig = SharedCylinder();
+  Solver shipped(rig), tight(rig, Tight());
+  std::mt19937 random(7);
+  std::uniform_real_distribution<double> alpha(-0.25, 1.25);
+  std::vector<double> alphas = {0.5, 1.0, -0.25, 1.25, 0.5 + 1e-7};
+  for (int i = 0; i < 8; ++i) alphas.push_back(alpha(random));
+  const double diagonal = rig->summary().bounding_box_diagonal;
+  int local = 0, frames = 0;
+  for (int t = 0; t < rig->num_targets(); ++t) {
+    for (double a : alphas) {
+      Frame frame;
+      frame.weights.assign(rig->num_targets(), 0.0);
+      frame.weights[t] = a;
+      Points x, reference;
+      const SolveSummary summary = shipped.Solve(frame, &x);
+      ASSERT_TRUE(summary.converged()) << "target " << t << " alpha " << a << ": " << summary.message;
+      EXPECT_LE(summary.residual, SolveOptions{}.residual_tolerance);
+      const SolveSummary r = tight.Solve(frame, &reference);
+      ASSERT_TRUE(r.converged()) << r.message;
+      // The bound a converged frame is held to: the solve's own tolerances are about 1e-7 of the diagonal here.
+      EXPECT_LE(MaxDistance(x, reference) / diagonal, 1e-6) << "target " << t << " alpha " << a;
+      ++frames;
+      if (summary.finish == Finish::kLocal) {
+        ++local;
+        EXPECT_LE(summary.solved_vertices, summary.free_vertices);
+      } else {
+        EXPECT_EQ(summary.finish, Finish::kFull);
+        EXPECT_EQ(summary.solved_vertices, summary.free_vertices);
+      }
+    }
+  }
+  std::cout << local << " of " << frames << " frames finished locally\n";
+}
+
+// A target that moves a patch of the cylinder only (a bump pushed out near one vertex): its frames are out of
+// balance near the patch only, and finish there.
+TEST(TargetPaths, ALocalFinishSolvesOnlyPartOfTheVertices) {
+  TriangleMesh rest = LoadMesh(DataPath("cylinder/cylinder.obj"));
+  TriangleMesh bump = rest;
+  bump.name = "bump";
+  const double diagonal = (rest.vertices.colwise().maxCoeff() - rest.vertices.colwise().minCoeff()).norm();
+  const Eigen::RowVector3d centre = rest.vertices.row(rest.vertices.rows() / 2);
+  for (Eigen::Index v = 0; v < rest.vertices.rows(); ++v) {
+    const double d = (rest.vertices.row(v) - centre).norm();
+    if (d < 0.12 * diagonal) bump.vertices.row(v) += Eigen::RowVector3d(0.03 * diagonal * (1.0 - d / (0.12 * diagonal)), 0, 0);
+  }
+  std::vector<TriangleMesh> targets;
+  targets.push_back(std::move(bump));
+  const auto rig = Rig::Build(std::move(rest), std::move(targets));
+  Solver solver(rig), tight(rig, Tight());
+  int partial = 0;
+  for (double a : {0.13, 0.37, 0.61, 0.83, 1.17}) {
+    Points x, reference;
+    const SolveSummary summary = solver.Solve({{a}}, &x);
+    ASSERT_TRUE(summary.converged()) << summary.message;
+    ASSERT_TRUE(tight.Solve({{a}}, &reference).converged());
+    EXPECT_LE(MaxDistance(x, reference) / diagonal, 1e-6) << "alpha " << a;
+    if (summary.finish == Finish::kLocal && summary.solved_vertices < summary.free_vertices / 2) ++partial;
+  }
+  EXPECT_GE(partial, 3);
+}
+
+TEST(TargetPaths, LocalFinishOffGivesTheSameEquilibrium) {
+  const auto& rig = SharedCylinder();
+  SolveOptions full;
+  full.local_finish = false;
+  Solver local(rig), whole(rig, full);
+  for (double a : {0.29, 0.71, 1.1}) {
+    Points x, y;
+    ASSERT_TRUE(local.Solve({{0.0, a}}, &x).converged());
+    const SolveSummary summary = whole.Solve({{0.0, a}}, &y);
+    ASSERT_TRUE(summary.converged());
+    EXPECT_EQ(summary.finish, Finish::kFull);
+    EXPECT_LE(MaxDistance(x, y) / rig->summary().bounding_box_diagonal, 1e-6) << "alpha " << a;
+  }
+}
+
+TEST(TargetPaths, BuildIsDeterministicAndPersists) {
+  const auto& rig = SharedCylinder();
+  const std::string bytes = rig->SavePrecomputed();
+  EXPECT_TRUE(Cylinder()->SavePrecomputed() == bytes) << "two builds of one rig gave different paths";
+
+  RigBuildControl control;
+  control.precomputed = &bytes;
+  std::vector<TargetSpec> specs;
+  {
+    TargetSpec bend;
+    bend.name = "bend";
+    bend.mesh = LoadMesh(DataPath("cylinder/poses-2_cylinder-2.obj"));
+    bend.inbetweens.push_back({0.5, LoadMesh(DataPath("cylinder/poses-2_cylinder-1.obj"))});
+    TargetSpec twist;
+    twist.name = "twist";
+    twist.mesh = LoadMesh(DataPath("cylinder/poses-1_cylinder-4.obj"));
+    specs.push_back(std::move(bend));
+    specs.push_back(std::move(twist));
+  }
+  const auto loaded = Rig::Build(LoadMesh(DataPath("cylinder/cylinder.obj")), specs, {}, control);
+  EXPECT_TRUE(loaded->summary().paths_loaded);
+  EXPECT_EQ(loaded->summary().path_samples, rig->summary().path_samples);
+  EXPECT_TRUE(loaded->SavePrecomputed() == bytes);
+  Solver a(rig), b(loaded);
+  for (double w : {0.3, 0.9}) {
+    Points x, y;
+    a.Solve({{w, 0.2}}, &x);
+    b.Solve({{w, 0.2}}, &y);
+    EXPECT_TRUE(x == y) << "frames differ";  // byte-identical
+  }
+
+  // Bytes that are not this rig's paths are not used: solved again, with a note.
+  const std::string truncated = bytes.substr(0, bytes.size() / 2);
+  control.precomputed = &truncated;
+  const auto rebuilt = Rig::Build(LoadMesh(DataPath("cylinder/cylinder.obj")), specs, {}, control);
+  EXPECT_FALSE(rebuilt->summary().paths_loaded);
+  EXPECT_THAT(rebuilt->summary().notes, ::testing::Contains(HasSubstr("precomputed target paths were not used")));
+  EXPECT_TRUE(rebuilt->SavePrecomputed() == bytes);
+  // Another rig's (one target) are refused too.
+  const auto other = testing::LoadRig("cylinder/cylinder.obj", {"cylinder/poses-1_cylinder-4.obj"});
+  const std::string foreign = other->SavePrecomputed();
+  control.precomputed = &foreign;
+  EXPECT_FALSE(Rig::Build(LoadMesh(DataPath("cylinder/cylinder.obj")), specs, {}, control)->summary().paths_loaded);
+}
+
+TEST(TargetPaths, AStopCheckEndsTheBuildWithinASecond) {
+  std::atomic<bool> stop{false};
+  std::atomic<bool> paths_started{false};
+  RigBuildControl control;
+  control.stop = [&] { return stop.load(); };
+  control.progress = [&](const RigBuildProgress& p) {
+    if (p.stage == "paths") paths_started = true;
+  };
+  std::vector<TargetSpec> specs(1);
+  specs[0].name = "pose";
+  specs[0].mesh = LoadMesh(DataPath("cube/poses-1_cube-4.obj"));  // its path takes seconds
+  std::chrono::steady_clock::time_point stopped;
+  std::thread stopper([&] {
+    while (!paths_started) std::this_thread::sleep_for(std::chrono::milliseconds(5));
+    std::this_thread::sleep_for(std::chrono::milliseconds(300));
+    stopped = std::chrono::steady_clock::now();
+    stop = true;
+  });
+  const Error error = CatchError([&] { Rig::Build(LoadMesh(DataPath("cube/cube.obj")), specs, {}, control); });
+  const auto ended = std::chrono::steady_clock::now();
+  stopper.join();
+  EXPECT_EQ(error.code(), ErrorCode::kCancelled);
+  EXPECT_LT(std::chrono::duration<double>(ended - stopped).count(), 1.0);
+}
+
+TEST(TargetPaths, OptionsOutOfRangeAreRefused) {
+  RigOptions options;
+  options.path_tolerance = 0.0;
+  EXPECT_THAT(CatchError([&] { options.Validate(); }).what(), HasSubstr("path_tolerance"));
+  options = {};
+  options.path_max_samples = 2;
+  EXPECT_THAT(CatchError([&] { options.Validate(); }).what(), HasSubstr("path_max_samples"));
+  SolveOptions solve;
+  solve.local_finish_share = 0.0;
+  EXPECT_THAT(CatchError([&] { solve.Validate(); }).what(), HasSubstr("local_finish_share"));
+}
+
+}  // namespace
+}  // namespace springblend
