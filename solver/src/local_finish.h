@@ -21,8 +21,8 @@ struct LocalFinishOptions {
   double step_tolerance = 1e-5;      // last step, fraction of the diagonal, as the full solve's
   double max_step_fraction = 2.0;    // of the mean rest length, per vertex and step
   int max_line_search_steps = 40;
-  int max_iterations = 30;           // Newton iterations over all rounds
-  int max_rounds = 12;               // region growths
+  int max_iterations = 15;           // Newton iterations over all rounds
+  int max_rounds = 6;                // region growths
   double max_share = 0.3;            // of the free vertices; beyond it a full solve is cheaper
 };
 

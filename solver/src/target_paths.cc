@@ -2,6 +2,7 @@
 
 #include <fmt/format.h>
 #include <tbb/parallel_for.h>
+#include <tbb/parallel_invoke.h>
 
 #include <algorithm>
 #include <chrono>
@@ -23,6 +24,11 @@ namespace springblend::internal {
 namespace {
 
 constexpr int kMaxHalvings = 3;
+// Newton iterations a midpoint check may take: from an interpolant within the tolerance of its equilibrium,
+// Newton converges in one to three.
+constexpr int kCheckIterations = 6;
+// A sample solved this far (of the diagonal) from its predicted start jumped to another branch.
+constexpr double kJump = 1e-3;
 constexpr std::uint8_t kUnchecked = 255;
 constexpr std::uint8_t kSwitch = 2;
 constexpr char kPathsMagic[8] = {'S', 'B', 'P', 'A', 'T', 'H', '0', '2'};
@@ -153,14 +159,14 @@ MinimizerOptions SampleOptions(double tolerance) {
 // factorization preconditions the next sample while it stays close).
 class PathSolver {
  public:
-  PathSolver(const Rig& rig, int target, double tolerance, const std::function<bool()>* stop, TargetPath* path)
+  PathSolver(const Rig& rig, int target, double tolerance, const std::function<bool()>* stop)
       : rig_(rig),
         target_(target),
         stop_(stop),
-        path_(path),
         springs_(TopologyOf(rig)),
         linear_(rig.internals().pattern->matrix, *rig.internals().cholesky, rig.options().linear_solver),
-        minimizer_(Minimizer::Create(SampleOptions(tolerance))),
+        sample_options_(SampleOptions(tolerance)),
+        minimizer_(Minimizer::Create(sample_options_)),
         held_(3 * static_cast<size_t>(rig.num_vertices()), 0) {
     springs_.set_length_scale(rig.summary().mean_rest_length);
   }
@@ -193,6 +199,9 @@ class PathSolver {
     return {alpha, Eigen::MatrixXf::Zero(rig_.num_vertices(), 3), 0.0, true};
   }
 
+  int solves = 0;  // equilibria solved (tentative ones that failed not counted)
+  int newton_iterations = 0;
+
   // Starts a predictor from a solved sample.
   void Anchor(const Sample& sample, Predictor* predictor) const {
     const std::vector<double> weights = Weights(sample.alpha);
@@ -222,7 +231,10 @@ class PathSolver {
 
   // Solves the target at alpha from the predictor's start, or from `correction` (anchor's frame) when given.
   // A tentative solve that fails is not counted.
-  Sample Solve(double alpha, Predictor* predictor, const Eigen::MatrixXd* correction, bool tentative = false) {
+  // max_iterations > 0 caps the Newton iterations (a midpoint check: an interpolant Newton does not finish
+  // from in a few iterations is not in its equilibrium's basin, whatever that equilibrium is).
+  Sample Solve(double alpha, Predictor* predictor, const Eigen::MatrixXd* correction, bool tentative = false,
+               int max_iterations = 0) {
     if (stop_ != nullptr && *stop_ && (*stop_)()) {
       throw Error(ErrorCode::kCancelled, "the rig build was cancelled");
     }
@@ -246,7 +258,9 @@ class PathSolver {
                          [&](const Eigen::VectorXd& y) { return springs_.Energy(y); }, &x);
     }
     MinimizerSummary summary;
-    if (HoldConditions(rig_, conditions, &x, &held_)) {
+    const bool held = HoldConditions(rig_, conditions, &x, &held_);
+    const Eigen::VectorXd start = x;
+    if (held) {
       MinimizerProblem problem;
       problem.springs = &springs_;
       problem.linear = &linear_;
@@ -257,20 +271,26 @@ class PathSolver {
       problem.stop = stop_;
       MinimizerTiming timing;
       problem.timing = &timing;
+      if (max_iterations > 0) {
+        MinimizerOptions capped = sample_options_;
+        capped.max_iterations = max_iterations;
+        minimizer_->SetOptions(capped);
+      }
       minimizer_->Minimize(problem, &x, &summary);
+      if (max_iterations > 0) minimizer_->SetOptions(sample_options_);
     }
     if (summary.termination == MinimizerTermination::kCancelled) {
       throw Error(ErrorCode::kCancelled, "the rig build was cancelled");
     }
     const bool converged = summary.termination == MinimizerTermination::kConverged;
-    path_->newton_iterations += summary.iterations;
+    newton_iterations += summary.iterations;
     if (std::getenv("SPRINGBLEND_PATH_DEBUG")) {
       fmt::print(stderr, "solve target {} alpha {:.6f} {} iterations {} cg {} factorizations {} residual {:.2e} -> {:.2e} {}\n",
                  target_, alpha, correction ? "from-interpolant" : "predicted", summary.iterations, summary.cg_iterations,
                  summary.factorizations, summary.initial_residual, summary.residual, summary.message);
     }
     if (!converged && tentative) return {alpha, Eigen::MatrixXf(), std::numeric_limits<double>::infinity(), false};
-    ++path_->solves;
+    ++solves;
     Points solved(n, 3);
     for (int v = 0; v < n; ++v) solved.row(v) = x.segment<3>(3 * v).transpose();
     if (conditions.mode == BoundaryMode::kFloating) {
@@ -278,7 +298,14 @@ class PathSolver {
     }
     const bool finite = solved.allFinite();
     if (!finite) solved = linear;  // a broken sample only costs its frames a worse start
-    if (predictor != nullptr) predictor->Add(solved, conditions.motion, weights, converged && finite);  // either start
+    if (predictor != nullptr) {
+      // A solve that moved far from its start went over a fold to another branch: what came before it does
+      // not predict what comes after.
+      double moved = 0.0;
+      for (int v = 0; v < n; ++v) moved = std::max(moved, (x.segment<3>(3 * v) - start.segment<3>(3 * v)).squaredNorm());
+      if (std::sqrt(moved) > kJump * rig_.summary().bounding_box_diagonal) predictor->Reset();
+      predictor->Add(solved, conditions.motion, weights, converged && finite);
+    }
     Points corrected = solved - linear;
     if (conditions.motion) corrected = corrected * conditions.motion->rotation.toRotationMatrix();  // R^T per row
     return {alpha, corrected.cast<float>(),
@@ -289,7 +316,7 @@ class PathSolver {
   const Rig& rig_;
   int target_;
   const std::function<bool()>* stop_;
-  TargetPath* path_;
+  MinimizerOptions sample_options_;
   SpringSystem springs_;
   LinearSystem linear_;
   std::unique_ptr<Minimizer> minimizer_;
@@ -303,7 +330,11 @@ double Distance(const Eigen::MatrixXd& a, const Eigen::MatrixXf& b) {
 
 void BuildPath(const Rig& rig, int target, const TargetPathsOptions& options, TargetPath* path) {
   const auto start = std::chrono::steady_clock::now();
-  PathSolver solver(rig, target, options.tolerance, options.stop, path);
+  // Two chains of solves, each with its own solver (whose kept factorization carries from one solve to the
+  // next): the sweeps inside [0, 1] on one, the extensions on the other; the midpoint checks split between
+  // them. Each chain is sequential and its work fixed, so the paths do not depend on the threads.
+  PathSolver solver(rig, target, options.tolerance, options.stop);
+  PathSolver side(rig, target, options.tolerance, options.stop);
   const double diagonal = rig.summary().bounding_box_diagonal;
   const double h = 1.0 / options.intervals;
   // The knots of [0, 1]: the rest shape, the target's in-betweens and the target, each the sculpted shape of
@@ -316,7 +347,10 @@ void BuildPath(const Rig& rig, int target, const TargetPathsOptions& options, Ta
   // first base sample where the down branch's energy is lower.
   std::vector<Sample> inside;
   std::vector<int> switches;  // in `inside`: intervals from an up branch to a down branch
-  Sample lower = solver.End(0.0, nullptr);
+  const Sample rest = solver.End(0.0, nullptr);
+  const Sample full = solver.End(1.0, nullptr);
+  const auto sweep_inside = [&] {
+  Sample lower = rest;
   for (size_t j = 0; j + 1 < knots.size(); ++j) {
     const double a = knots[j], b = knots[j + 1];
     const int steps = std::max(1, static_cast<int>(std::ceil((b - a) / h - 1e-9)));
@@ -327,7 +361,7 @@ void BuildPath(const Rig& rig, int target, const TargetPathsOptions& options, Ta
     solver.Anchor(lower, &from_lower);
     up.push_back(std::move(lower));
     for (size_t k = 1; k < grid.size(); ++k) solver.Refined(grid[k - 1], grid[k], from_lower, &up);
-    Sample upper = solver.End(b, nullptr);
+    Sample upper = j + 2 == knots.size() ? full : solver.End(b, nullptr);
     if (up.back().converged && Distance(upper.correction.cast<double>(), up.back().correction) <=
                                    options.tolerance * diagonal) {
       up.pop_back();
@@ -367,19 +401,21 @@ void BuildPath(const Rig& rig, int target, const TargetPathsOptions& options, Ta
     lower = std::move(upper);
   }
   inside.push_back(std::move(lower));  // the target
+  };
   // Beyond [0, 1]: continuation from the ends.
   const int beyond = static_cast<int>(std::ceil(options.extension * options.intervals - 1e-9));
   std::vector<Sample> above, below;
-  {
+  const auto sweep_beyond = [&] {
+    {
+      Predictor predictor;
+      side.Anchor(full, &predictor);
+      for (int k = 1; k <= beyond; ++k) side.Refined(1.0 + (k - 1) * h, 1.0 + k * h, predictor, &above);
+    }
     Predictor predictor;
-    solver.Anchor(inside.back(), &predictor);
-    for (int k = 1; k <= beyond; ++k) solver.Refined(1.0 + (k - 1) * h, 1.0 + k * h, predictor, &above);
-  }
-  {
-    Predictor predictor;
-    solver.Anchor(inside.front(), &predictor);
-    for (int k = 1; k <= beyond; ++k) solver.Refined(-(k - 1) * h, -k * h, predictor, &below);
-  }
+    side.Anchor(rest, &predictor);
+    for (int k = 1; k <= beyond; ++k) side.Refined(-(k - 1) * h, -k * h, predictor, &below);
+  };
+  tbb::parallel_invoke(sweep_inside, sweep_beyond);
   std::vector<Sample> samples(below.rbegin(), below.rend());
   samples.insert(samples.end(), std::make_move_iterator(inside.begin()), std::make_move_iterator(inside.end()));
   samples.insert(samples.end(), std::make_move_iterator(above.begin()), std::make_move_iterator(above.end()));
@@ -401,36 +437,53 @@ void BuildPath(const Rig& rig, int target, const TargetPathsOptions& options, Ta
   std::vector<double> errors(path->certified.size(), 0.0);
   std::vector<double> parent_error(path->certified.size(), 0.0);  // the error of the interval split into this one
   for (;;) {
+    std::vector<int> unchecked;
+    for (size_t i = 0; i + 1 < path->alphas.size(); ++i) {
+      if (path->certified[i] == kUnchecked) unchecked.push_back(static_cast<int>(i));
+    }
+    if (unchecked.empty()) break;
+    // Each interval's check, the first half of them on one solver and the rest on the other.
+    std::vector<Sample> checks(unchecked.size());
+    std::vector<double> check_errors(unchecked.size(), 0.0);
+    const auto check = [&](PathSolver& on, size_t from, size_t to) {
+      for (size_t c = from; c < to; ++c) {
+        const int i = unchecked[c];
+        const double a = path->alphas[i], b = path->alphas[i + 1];
+        if (b - a <= min_width) continue;
+        Eigen::MatrixXd predicted;
+        EvaluatePath(*path, 0.5 * (a + b), &predicted);
+        checks[c] = on.Solve(0.5 * (a + b), nullptr, &predicted, false, kCheckIterations);
+        check_errors[c] = checks[c].converged ? Distance(predicted, checks[c].correction) / diagonal
+                                              : std::numeric_limits<double>::infinity();
+      }
+    };
+    const size_t half = unchecked.size() / 2;
+    tbb::parallel_invoke([&] { check(solver, 0, half); }, [&] { check(side, half, unchecked.size()); });
     std::vector<Sample> added;
     std::vector<int> split;
-    for (size_t i = 0; i + 1 < path->alphas.size(); ++i) {
-      if (path->certified[i] != kUnchecked) continue;
+    for (size_t c = 0; c < unchecked.size(); ++c) {
+      const int i = unchecked[c];
       const double a = path->alphas[i], b = path->alphas[i + 1];
-      const double m = 0.5 * (a + b);
-      if (path->samples() + static_cast<int>(added.size()) >= options.max_samples || b - a <= min_width) {
-        path->certified[i] = 0;
-        continue;
-      }
-      Eigen::MatrixXd predicted;
-      EvaluatePath(*path, m, &predicted);
-      Sample check = solver.Solve(m, nullptr, &predicted);
-      const double error = check.converged ? Distance(predicted, check.correction) / diagonal
-                                           : std::numeric_limits<double>::infinity();
+      const double error = check_errors[c];
       errors[i] = error;
       if (std::getenv("SPRINGBLEND_PATH_DEBUG")) {
-        fmt::print(stderr, "target {} [{:.6f}, {:.6f}] error {:.3e} energy {:.6e} iterations {}\n", target, a, b,
-                   error, check.energy, path->newton_iterations);
+        fmt::print(stderr, "target {} [{:.6f}, {:.6f}] error {:.3e}\n", target, a, b, error);
       }
-      if (error <= options.tolerance) {
+      if (b - a <= min_width) {
+        path->certified[i] = 0;
+      } else if (error <= options.tolerance) {
         path->certified[i] = 1;
-      } else if (parent_error[i] > 0.0 && error > 0.25 * parent_error[i]) {
-        // Halving the interval did not bring the error down as a smooth path's would (by 8 to 16): the
-        // equilibria there are not one smooth branch (a fold, a kink, nearby minima). More samples would not
-        // certify it; frames there finish by a full solve when the local one fails.
+      } else if (!std::isfinite(error) || (parent_error[i] > 0.0 && error > 0.25 * parent_error[i]) ||
+                 path->samples() + static_cast<int>(added.size()) >= options.max_samples) {
+        // Newton did not finish from the interpolant within a few iterations, or halving the interval did not
+        // bring the error down as a smooth path's would (by 8 to 16): the equilibria there are not one smooth
+        // branch (a fold, a kink, nearby minima), and more samples would not certify it; or the path has all
+        // the samples it may have. Frames there finish by a full solve
+        // when the local one fails.
         path->certified[i] = 0;
       } else {
-        split.push_back(static_cast<int>(i));
-        added.push_back(std::move(check));
+        split.push_back(i);
+        added.push_back(std::move(checks[c]));
       }
     }
     if (split.empty()) break;
@@ -478,6 +531,8 @@ void BuildPath(const Rig& rig, int target, const TargetPathsOptions& options, Ta
   for (size_t i = 0; i < errors.size(); ++i) {
     if (path->certified[i] == 1) path->max_error = std::max(path->max_error, errors[i]);
   }
+  path->solves = solver.solves + side.solves;
+  path->newton_iterations = solver.newton_iterations + side.newton_iterations;
   path->build_ms = Elapsed(start);
 }
 

@@ -45,7 +45,7 @@ struct TargetPath {
 };
 
 struct TargetPathsOptions {
-  int intervals = 32;          // base samples per unit of alpha (the sweeps' continuation step)
+  int intervals = 16;          // base samples per unit of alpha (the sweeps' continuation step)
   double extension = 0.25;     // beyond [0, 1] on both sides
   double tolerance = 1e-6;     // midpoint error, of the bounding-box diagonal
   int max_samples = 96;        // per target

@@ -103,7 +103,7 @@ struct SolveOptions {
   // converge. Single-target frames start on their certified path and finish in milliseconds; a mix frame
   // whose start is out of balance nearly everywhere costs one force pass more. Range of the share (0, 1].
   bool local_finish = true;
-  double local_finish_share = 0.3;
+  double local_finish_share = 0.15;
   // Contact rounds per frame (solve, catch penetrating vertices, solve again) before giving up. [1, 1000]
   int max_contact_rounds = 30;
   // Contact vertices are held this fraction of the diagonal outside the obstacle's surface. [0, 0.01]
