@@ -7,6 +7,7 @@
 #include <cmath>
 #include <cstring>
 #include <iterator>
+#include <limits>
 #include <sstream>
 #include <unordered_set>
 
@@ -19,6 +20,66 @@ namespace {
 Eigen::Vector3d ToVector(const v1::Vec3& v) { return {v.x(), v.y(), v.z()}; }
 
 [[noreturn]] void Invalid(const std::string& what) { throw Error(ErrorCode::kInvalidInput, what); }
+
+// Answers go out as float32, and coordinates add up (a collider's centre, its radius and its frame's
+// translation): a double that is finite but beyond float32 (1e308) or near its end came back as inf.
+// Coordinates, radii and extents are bounded well inside float32; non-finite ones are left to the solver's
+// checks (which name them in their own words).
+constexpr double kMaxCoordinate = 1e12;
+// The least distance of an in-between weight from 0, 1 and the target's other in-betweens.
+constexpr double kInbetweenSpacing = 1e-6;
+
+void CheckMagnitude(double value, const std::function<std::string()>& field) {
+  if (!std::isfinite(value)) return;
+  if (std::abs(value) > std::numeric_limits<float>::max()) {
+    Invalid(fmt::format("{} = {} is not a finite float32", field(), value));
+  }
+  if (std::abs(value) > kMaxCoordinate) {
+    Invalid(fmt::format("{} = {} is beyond +-{:g}, the largest coordinate or size a solve takes (answers are float32)",
+                        field(), value, kMaxCoordinate));
+  }
+}
+
+void CheckMagnitude(const v1::Vec3& v, const std::string& field) {
+  CheckMagnitude(v.x(), [&] { return field + ".x"; });
+  CheckMagnitude(v.y(), [&] { return field + ".y"; });
+  CheckMagnitude(v.z(), [&] { return field + ".z"; });
+}
+
+// Every vertex of a mesh (a collider's, or an uploaded shape) within kMaxCoordinate.
+void CheckMagnitude(const Points& points, const std::string& field) {
+  for (Eigen::Index v = 0; v < points.rows(); ++v) {
+    for (int c = 0; c < 3; ++c) {
+      CheckMagnitude(points(v, c), [&] { return fmt::format("{} vertex {} {}", field, v, "xyz"[c]); });
+    }
+  }
+}
+
+// A collider's own numbers, before it is built: "colliders[2].sphere.radius = 1e+200 is not a finite float32".
+void CheckColliderMagnitudes(const v1::Collider& c, int i) {
+  const std::string at = fmt::format("colliders[{}]", i);
+  switch (c.shape_case()) {
+    case v1::Collider::kSphere:
+      CheckMagnitude(c.sphere().center(), at + ".sphere.center");
+      CheckMagnitude(c.sphere().radius(), [&] { return at + ".sphere.radius"; });
+      break;
+    case v1::Collider::kCapsule:
+      CheckMagnitude(c.capsule().a(), at + ".capsule.a");
+      CheckMagnitude(c.capsule().b(), at + ".capsule.b");
+      CheckMagnitude(c.capsule().radius(), [&] { return at + ".capsule.radius"; });
+      break;
+    case v1::Collider::kBox:
+      CheckMagnitude(c.box().center(), at + ".box.center");
+      CheckMagnitude(c.box().half_extents(), at + ".box.half_extents");
+      break;
+    case v1::Collider::kPlane:
+      // The normal is normalized (the solver refuses one whose length overflows); only the point is a position.
+      CheckMagnitude(c.plane().point(), at + ".plane.point");
+      break;
+    default:
+      break;  // meshes: checked vertex by vertex once read
+  }
+}
 
 // A mesh collider's arrays as a mesh, checked element by element so a refusal names the array and the index
 // (`mesh.triangles[5]`; the caller prefixes the collider). Counts are checked against the limits from the byte
@@ -59,6 +120,7 @@ TriangleMesh MeshFromArrays(const v1::MeshArrays& arrays, int collider, const Me
       }
     }
   }
+  CheckMagnitude(mesh.vertices, "mesh.positions:");
   for (Eigen::Index f = 0; f < mesh.faces.rows(); ++f) {
     for (int c = 0; c < 3; ++c) {
       const int v = mesh.faces(f, c);
@@ -69,6 +131,29 @@ TriangleMesh MeshFromArrays(const v1::MeshArrays& arrays, int collider, const Me
     }
   }
   return mesh;
+}
+
+// In-between weights in (0, 1) (the solver checks that, and that they differ) at least kInbetweenSpacing from
+// 0, 1 and each other: the blend's slope between two knots is 1 / their distance, and 1e-300 gave 1e300.
+void CheckInbetweenWeights(const std::vector<double>& weights, int t, const std::string& name) {
+  const auto field = [&](size_t i) {
+    return fmt::format("header.targets[{}].inbetween_weights[{}] (target '{}')", t, i, Printable(name));
+  };
+  for (size_t i = 0; i < weights.size(); ++i) {
+    const double w = weights[i];
+    if (w > 0.0 && w < 1.0 && (w < kInbetweenSpacing || w > 1.0 - kInbetweenSpacing)) {
+      Invalid(fmt::format("{} = {} is within {:g} of {}: in-between weights must be in [{:g}, 1 - {:g}]", field(i),
+                          w, kInbetweenSpacing, w < 0.5 ? 0 : 1, kInbetweenSpacing, kInbetweenSpacing));
+    }
+    for (size_t j = 0; j < i; ++j) {
+      const double gap = std::abs(w - weights[j]);
+      if (gap > 0.0 && gap < kInbetweenSpacing) {
+        Invalid(fmt::format("{} = {} is within {:g} of inbetween_weights[{}] = {}: in-betweens must be at least "
+                            "{:g} apart",
+                            field(i), w, kInbetweenSpacing, j, weights[j], kInbetweenSpacing));
+      }
+    }
+  }
 }
 
 }  // namespace
@@ -160,6 +245,7 @@ void UploadAssembler::Add(v1::UploadChunk& chunk) {
       const v1::TargetRig& in = h.targets(t);
       TargetRigData rig;
       rig.inbetween_weights.assign(in.inbetween_weights().begin(), in.inbetween_weights().end());
+      CheckInbetweenWeights(rig.inbetween_weights, t, data_.target_names[static_cast<size_t>(t)]);
       for (int d = 0; d < in.combination_size(); ++d) {
         if (in.combination(d).size() > limits_.max_name_bytes) {
           Fail(fmt::format("header.targets[{}].combination[{}] is over {} bytes", t, d, limits_.max_name_bytes));
@@ -279,6 +365,19 @@ CharacterData UploadAssembler::Finish() {
     std::string().swap(piece.bytes);
   }
   pieces_.clear();
+  // Coordinates well inside float32 (answers are float32; an uploaded 1e300 came back as inf), masks within
+  // the weights' bound. Non-finite values are the solver's to refuse.
+  for (size_t k = 0; k < shapes.size(); ++k) {
+    CheckMagnitude(shapes[k], k == 0 ? std::string("the rest shape:") : fmt::format("shape {}:", k));
+  }
+  for (size_t k = 0; k < masks.size(); ++k) {
+    for (size_t v = 0; v < masks[k].size(); ++v) {
+      if (std::isfinite(masks[k][v]) && std::abs(masks[k][v]) > limits_.max_weight) {
+        Fail(fmt::format("the mask of target '{}' has {} at vertex {}, beyond +-{}: the blended shape would overflow",
+                         Printable(data_.target_names[mask_owner_[k]]), masks[k][v], v, limits_.max_weight));
+      }
+    }
+  }
   // Shapes past the targets are the in-betweens, target by target.
   const size_t targets = data_.target_names.size();
   data_.shapes.assign(std::make_move_iterator(shapes.begin()), std::make_move_iterator(shapes.begin() + 1 + targets));
@@ -352,6 +451,7 @@ std::vector<Collider> ToColliders(const google::protobuf::RepeatedPtrField<v1::C
   for (int i = 0; i < colliders.size(); ++i) {
     if (stopped && stopped()) throw CancelledError(fmt::format("stopped while converting colliders[{}]", i));
     const v1::Collider& c = colliders[i];
+    CheckColliderMagnitudes(c, i);
     try {
       switch (c.shape_case()) {
         case v1::Collider::kSphere:
@@ -369,6 +469,7 @@ std::vector<Collider> ToColliders(const google::protobuf::RepeatedPtrField<v1::C
         case v1::Collider::kMeshObj: {
           const TriangleMesh mesh = LoadMeshFromText(c.mesh_obj(), "obj", fmt::format("colliders[{}].mesh_obj", i),
                                                      limits.collider_text);
+          CheckMagnitude(mesh.vertices, "mesh_obj:");
           out.push_back(Collider::Mesh(mesh, limits.collider));
           break;
         }
@@ -385,6 +486,38 @@ std::vector<Collider> ToColliders(const google::protobuf::RepeatedPtrField<v1::C
   return out;
 }
 
+namespace {
+
+// Effective weights of in-betweens and full shapes may exceed the frame's weights (an in-between's segment
+// slope is at most 1 / kInbetweenSpacing): up to this factor times Limits::max_weight.
+constexpr double kMaxShapeWeightFactor = 1e3;
+
+void CheckShapeWeights(const Rig& rig, const std::vector<double>& weights, size_t f, const Limits& limits) {
+  const std::vector<double> shape_weights = rig.ShapeWeights(weights);
+  const size_t combinations = rig.combination_names().size();
+  const size_t first_combination = shape_weights.size() - std::min(combinations, shape_weights.size());
+  for (size_t s = 0; s < shape_weights.size(); ++s) {
+    const double w = shape_weights[s];
+    if (s >= first_combination) {
+      // A combination is on by the product of its drivers' weights: the same guard as a weight.
+      if (!(std::abs(w) <= limits.max_weight)) {
+        Invalid(fmt::format("frames[{}]: combination '{}' has weight {} (the product of its drivers' weights), "
+                            "beyond +-{}: the blended shape would overflow",
+                            f, Printable(rig.combination_names()[s - first_combination]), w, limits.max_weight));
+      }
+    } else if (!(std::abs(w) <= kMaxShapeWeightFactor * limits.max_weight)) {
+      // In-betweens extrapolate with the slope of their last segment.
+      Invalid(fmt::format("frames[{}]: sculpted shape {} ({}) has weight {}, beyond +-{}: the blended shape would "
+                          "overflow",
+                          f, s, s < rig.target_names().size() ? "target '" + Printable(rig.target_names()[s]) + "'"
+                                                              : std::string("an in-between"),
+                          w, kMaxShapeWeightFactor * limits.max_weight));
+    }
+  }
+}
+
+}  // namespace
+
 Frame ToFrame(const v1::FrameRequest& in, const Rig& rig, size_t colliders, size_t f, const Limits& limits) {
   Frame frame;
   frame.weights.assign(in.weights().begin(), in.weights().end());
@@ -398,7 +531,9 @@ Frame ToFrame(const v1::FrameRequest& in, const Rig& rig, size_t colliders, size
     Invalid(fmt::format("frames[{}]: collider_transforms has {} entries but there are {} colliders", f,
                         in.collider_transforms_size(), colliders));
   }
-  for (const auto& t : in.collider_transforms()) {
+  for (int k = 0; k < in.collider_transforms_size(); ++k) {
+    const v1::Transform& t = in.collider_transforms(k);
+    CheckMagnitude(t.translation(), fmt::format("frames[{}].collider_transforms[{}].translation", f, k));
     RigidTransform motion;
     motion.translation = ToVector(t.translation());
     if (t.qw() != 0.0 || t.qx() != 0.0 || t.qy() != 0.0 || t.qz() != 0.0) {
@@ -413,7 +548,9 @@ Frame ToFrame(const v1::FrameRequest& in, const Rig& rig, size_t colliders, size
   if (in.pins_size() > rig.num_surface_vertices()) {
     Invalid(fmt::format("frames[{}].pins has {} entries, more than the mesh's {} vertices", f, in.pins_size(), rig.num_surface_vertices()));
   }
-  for (const auto& p : in.pins()) {
+  for (int k = 0; k < in.pins_size(); ++k) {
+    const v1::Pin& p = in.pins(k);
+    CheckMagnitude(p.position(), fmt::format("frames[{}].pins[{}].position", f, k));
     if (p.vertex() >= static_cast<std::uint32_t>(rig.num_surface_vertices())) {
       Invalid(fmt::format("frames[{}].pins: vertex {} is not a vertex of the mesh (it has {})", f, p.vertex(), rig.num_surface_vertices()));
     }
@@ -424,14 +561,17 @@ Frame ToFrame(const v1::FrameRequest& in, const Rig& rig, size_t colliders, size
   } catch (const Error& e) {
     Invalid(fmt::format("frames[{}]: {}", f, e.what()));
   }
+  CheckShapeWeights(rig, frame.weights, f, limits);
   return frame;
 }
 
 void CheckSolved(const Points& positions, size_t index) {
-  if (!positions.allFinite()) {
+  // Finite as float32, as the answer carries them (allFinite also catches NaN, which the max ignores).
+  if (!positions.allFinite() ||
+      (positions.size() > 0 && positions.cwiseAbs().maxCoeff() > std::numeric_limits<float>::max())) {
     throw Error(ErrorCode::kNumerical,
-                fmt::format("frame {} produced non-finite positions (weights or pins too large for double "
-                            "precision); nothing was returned for it",
+                fmt::format("frame {} produced positions that are not finite float32 values (weights, pins or "
+                            "colliders too large); nothing was returned for it",
                             index));
   }
 }

@@ -32,6 +32,7 @@ HealthEndpoint::HealthEndpoint(const std::string& listen) {
   grpc::ServerBuilder builder;
   builder.AddListeningPort(listen, grpc::InsecureServerCredentials(), &port_);
   builder.SetOption(std::make_unique<WithoutPlugins>());
+  builder.AddChannelArgument(GRPC_ARG_ALLOW_REUSEPORT, 0);  // a taken port fails, as on the main server
   builder.RegisterCallbackGenericService(&unimplemented_);
   server_ = builder.BuildAndStart();
   if (!server_ || port_ == 0 || server_->GetHealthCheckService() == nullptr) {

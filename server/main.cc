@@ -31,9 +31,12 @@ int main(int argc, char** argv) {
   app.add_option("--workers", o.workers, "solver threads")->check(CLI::Range(1, 1024));
   app.add_option("--queue", o.queue, "jobs waiting for a solver thread before RESOURCE_EXHAUSTED")->check(CLI::Range(1, 100000));
   app.add_option("--memory-budget-mb", memory_mb, "memory for built characters; least recently used go first")->check(CLI::Range(1, 1 << 20));
-  app.add_option("--max-upload-bytes", o.limits.max_upload_bytes, "largest upload");
-  app.add_option("--max-vertices", o.limits.max_vertices, "most vertices in a character");
-  app.add_option("--max-frames", o.limits.max_frames, "most frames in one solve request (more: RESOURCE_EXHAUSTED)");
+  app.add_option("--max-upload-bytes", o.limits.max_upload_bytes, "largest upload")
+      ->check(CLI::Range(kMinUploadBytes, kMaxUploadBytes));
+  app.add_option("--max-vertices", o.limits.max_vertices, "most vertices in a character")
+      ->check(CLI::Range(kMinVertices, kMaxVertices));
+  app.add_option("--max-frames", o.limits.max_frames, "most frames in one solve request (more: RESOURCE_EXHAUSTED)")
+      ->check(CLI::Range(1, kMaxFrames));
   app.add_option("--max-collider-faces", max_collider_faces,
                  "most triangles (and vertices) in one mesh collider; checked before the mesh is built")
       ->check(CLI::Range(4, 10'000'000));

@@ -8,6 +8,7 @@
 #include <unistd.h>
 
 #include <cerrno>
+#include <charconv>
 #include <chrono>
 #include <vector>
 #include <cstring>
@@ -91,7 +92,13 @@ MetricsEndpoint::MetricsEndpoint(const std::string& listen, std::function<std::s
   if (colon == std::string::npos || inet_pton(AF_INET, listen.substr(0, colon).c_str(), &address.sin_addr) != 1) {
     throw Error(ErrorCode::kInvalidInput, "--metrics " + listen + ": expected IPV4_ADDRESS:PORT");
   }
-  address.sin_port = htons(static_cast<std::uint16_t>(std::stoi(listen.substr(colon + 1))));
+  const std::string port = listen.substr(colon + 1);
+  unsigned number = 0;
+  const auto [end, failure] = std::from_chars(port.data(), port.data() + port.size(), number);
+  if (port.empty() || failure != std::errc() || end != port.data() + port.size() || number > 65535) {
+    throw Error(ErrorCode::kInvalidInput, "--metrics " + listen + ": expected IPV4_ADDRESS:PORT (port 0 to 65535)");
+  }
+  address.sin_port = htons(static_cast<std::uint16_t>(number));
   socket_ = ::socket(AF_INET, SOCK_STREAM | SOCK_CLOEXEC, 0);
   const int one = 1;
   setsockopt(socket_, SOL_SOCKET, SO_REUSEADDR, &one, sizeof(one));

@@ -62,6 +62,7 @@ void TokenAuthenticator::AddFile(const std::string& path) {
   std::ifstream in(path);
   if (!in) throw Error(ErrorCode::kInvalidInput, "--tokens-file: cannot read " + path);
   std::string line;
+  int found = 0;
   for (int number = 1; std::getline(in, line); ++number) {
     std::istringstream words(line);
     std::string role, token, extra;
@@ -71,6 +72,7 @@ void TokenAuthenticator::AddFile(const std::string& path) {
     if (token.empty() || !extra.empty()) {
       throw Error(ErrorCode::kInvalidInput, where + ": expected 'ROLE TOKEN' (ROLE is full or solve)");
     }
+    ++found;
     if (role == "full") {
       Add(token, Role::kFull);
     } else if (role == "solve") {
@@ -78,6 +80,12 @@ void TokenAuthenticator::AddFile(const std::string& path) {
     } else {
       throw Error(ErrorCode::kInvalidInput, where + ": unknown role '" + role + "' (full or solve)");
     }
+  }
+  // An empty secret mount (or a file of comments) must not silently turn authentication off.
+  if (found == 0) {
+    throw Error(ErrorCode::kInvalidInput, "--tokens-file " + path +
+                                              " has no tokens: refusing to start with authentication off; omit "
+                                              "--tokens-file to run open");
   }
 }
 

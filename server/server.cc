@@ -30,6 +30,8 @@ void CheckRange(const char* field, std::int64_t value, std::int64_t low, std::in
 }
 
 std::string HostOf(const std::string& address) { return address.substr(0, address.rfind(':')); }
+std::string PortOf(const std::string& address) { return address.substr(address.rfind(':') + 1); }
+bool AnyHost(const std::string& host) { return host.empty() || host == "0.0.0.0" || host == "[::]" || host == "::"; }
 
 std::string HostName() {
   char host[256] = {0};
@@ -68,10 +70,25 @@ void ServerOptions::Validate() const {
   CheckRange("metadata_workers", metadata_workers, 1, 64);
   CheckRange("memory_budget_bytes", memory_budget_bytes, 1, std::int64_t{1} << 50);
   CheckRange("request_memory_bytes", request_memory_bytes, 1, std::int64_t{1} << 50);
+  CheckRange("max_upload_bytes (--max-upload-bytes)", limits.max_upload_bytes, kMinUploadBytes, kMaxUploadBytes);
+  CheckRange("max_vertices (--max-vertices)", limits.max_vertices, kMinVertices, kMaxVertices);
+  CheckRange("max_frames (--max-frames)", limits.max_frames, 1, kMaxFrames);
   CheckRange("max_receive_message_bytes", max_receive_message_bytes, 1 << 10, 1 << 30);
   if (timeouts.stall.count() <= 0 || timeouts.idle.count() <= 0) Invalid("timeouts: stall and idle must be positive");
   if (drain.count() < 0) Invalid("drain must not be negative");
-  if (!health_listen.empty()) CheckListenAddress(health_listen, "--health-address");
+  if (!metrics_listen.empty()) CheckListenAddress(metrics_listen, "--metrics");
+  if (!health_listen.empty()) {
+    CheckListenAddress(health_listen, "--health-address");
+    // Two servers on one port (gRPC would otherwise share it with SO_REUSEPORT) split the connections.
+    for (const auto& address : listen) {
+      const std::string host = HostOf(address), health_host = HostOf(health_listen);
+      if (PortOf(address) == PortOf(health_listen) && std::stoi(PortOf(address)) != 0 &&
+          (host == health_host || AnyHost(host) || AnyHost(health_host))) {
+        Invalid("--health-address " + health_listen + " is the port of --listen " + address +
+                ": give the health service a port of its own");
+      }
+    }
+  }
 }
 
 // Members in the order they are built; destroyed in reverse, so the endpoints and the gRPC server go before the
@@ -133,11 +150,17 @@ std::unique_ptr<Server> Server::Create(ServerOptions options) {
   builder.RegisterService(&state->characters);
   builder.RegisterService(&state->solves);
   builder.SetMaxReceiveMessageSize(o.max_receive_message_bytes);
+  // gRPC sets SO_REUSEPORT by default: a second server on a taken port would start and take half the
+  // connections. Without it, a taken port fails here.
+  builder.AddChannelArgument(GRPC_ARG_ALLOW_REUSEPORT, 0);
   std::vector<std::unique_ptr<grpc::experimental::ServerInterceptorFactoryInterface>> interceptors;
   interceptors.push_back(MakeReflectionGuard(state->auth));
   builder.experimental().SetInterceptorCreators(std::move(interceptors));
   state->server = builder.BuildAndStart();
-  if (!state->server) Invalid("--listen: the gRPC server could not start on the given addresses");
+  if (!state->server) {
+    Invalid(fmt::format("--listen {}: cannot listen there (the port is taken, or the host is not this machine's)",
+                        fmt::join(o.listen, ", ")));
+  }
   for (size_t i = 0; i < o.listen.size(); ++i) {
     if (ports[i] == 0) {
       Invalid("--listen " + o.listen[i] + ": cannot listen there (the port is taken, or the host is not this "

@@ -107,5 +107,8 @@ std::string DefaultCacheDirectory();
 // Throws Error(kInvalidInput) naming `flag` unless `address` is HOST:PORT with a port from 0 to 65535 (gRPC
 // takes larger ports without complaint).
 void CheckListenAddress(const std::string& address, const std::string& flag);
+// The valid ranges of --max-upload-bytes, --max-vertices and --max-frames (Limits).
+inline constexpr std::int64_t kMinUploadBytes = 1 << 10, kMaxUploadBytes = std::int64_t{1} << 40;
+inline constexpr int kMinVertices = 3, kMaxVertices = 100'000'000, kMaxFrames = 10'000'000;
 
 }  // namespace springblend::server

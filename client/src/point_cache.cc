@@ -1,10 +1,15 @@
 #include "springblend/point_cache.h"
 
+#include <fcntl.h>
 #include <fmt/format.h>
+#include <sys/stat.h>
+#include <unistd.h>
 
 #include <algorithm>
 #include <array>
 #include <cctype>
+#include <cerrno>
+#include <cmath>
 #include <cstring>
 #include <filesystem>
 
@@ -42,8 +47,20 @@ T FromLittle(const char* bytes) {
 PointCacheWriter::PointCacheWriter(std::string path, int num_points, float start_frame, float sample_rate)
     : path_(std::move(path)), partial_path_(path_ + ".partial"), num_points_(num_points) {
   if (num_points <= 0) throw PointCacheError(fmt::format("{}: a point cache needs points, got {}", path_, num_points));
-  out_.open(partial_path_, std::ios::binary | std::ios::trunc);
-  if (!out_) throw PointCacheError(fmt::format("{}: cannot write the point cache ({})", path_, std::strerror(errno)));
+  // The temporary is created afresh and never through a link: a planted NAME.pc2.partial -> victim must not
+  // get the victim overwritten. A stale regular partial (an earlier run killed mid-write) is removed first;
+  // anything else there (a link, a directory, a FIFO) is refused.
+  struct stat existing {};
+  if (lstat(partial_path_.c_str(), &existing) == 0 && S_ISREG(existing.st_mode)) ::unlink(partial_path_.c_str());
+  fd_ = ::open(partial_path_.c_str(), O_WRONLY | O_CREAT | O_EXCL | O_NOFOLLOW | O_CLOEXEC, 0644);
+  if (fd_ < 0) {
+    const int error = errno;
+    throw PointCacheError(fmt::format("{}: cannot write the point cache: {} ({}){}", path_, partial_path_,
+                                      std::strerror(error),
+                                      error == EEXIST || error == ELOOP
+                                          ? "; it is not a regular file (a link?): remove it"
+                                          : ""));
+  }
   WriteBytes(kSignature, sizeof kSignature);
   for (const auto& field : {Little(kVersion), Little(std::int32_t{num_points}), Little(start_frame),
                             Little(sample_rate), Little(std::int32_t{0})}) {
@@ -53,14 +70,28 @@ PointCacheWriter::PointCacheWriter(std::string path, int num_points, float start
 
 PointCacheWriter::~PointCacheWriter() {
   if (closed_) return;
-  out_.close();
-  std::error_code ignored;
-  std::filesystem::remove(partial_path_, ignored);
+  if (fd_ >= 0) ::close(fd_);
+  ::unlink(partial_path_.c_str());  // ours: created with O_EXCL (unlink removes a link, never its target)
 }
 
 void PointCacheWriter::WriteBytes(const char* data, std::size_t size) {
-  out_.write(data, static_cast<std::streamsize>(size));
-  if (!out_) throw PointCacheError(fmt::format("{}: writing the point cache failed", path_));
+  while (size > 0) {
+    const ssize_t n = ::write(fd_, data, size);
+    if (n < 0 && errno == EINTR) continue;
+    if (n <= 0) throw PointCacheError(fmt::format("{}: writing the point cache failed ({})", path_, std::strerror(errno)));
+    data += n;
+    size -= static_cast<std::size_t>(n);
+  }
+}
+
+// Samples are float32: one that is not finite as float32 (a coordinate beyond 3.4e38) is refused, not written.
+void PointCacheWriter::CheckFinite(const float* values, std::size_t count) const {
+  for (std::size_t i = 0; i < count; ++i) {
+    if (!std::isfinite(values[i])) {
+      throw PointCacheError(fmt::format("{}: sample {} has a non-finite coordinate (point {}, {}): not written",
+                                        path_, samples_, i / 3, values[i]));
+    }
+  }
 }
 
 void PointCacheWriter::Add(const Points& positions) {
@@ -70,12 +101,12 @@ void PointCacheWriter::Add(const Points& positions) {
                                       positions.rows(), num_points_));
   }
   std::vector<char> bytes(static_cast<std::size_t>(num_points_) * 12);
+  std::vector<float> values(static_cast<std::size_t>(num_points_) * 3);
   for (Eigen::Index i = 0; i < positions.rows(); ++i) {
-    for (int c = 0; c < 3; ++c) {
-      const auto value = Little(static_cast<float>(positions(i, c)));
-      std::memcpy(bytes.data() + (i * 3 + c) * 4, value.data(), 4);
-    }
+    for (int c = 0; c < 3; ++c) values[static_cast<std::size_t>(i * 3 + c)] = static_cast<float>(positions(i, c));
   }
+  CheckFinite(values.data(), values.size());
+  for (std::size_t k = 0; k < values.size(); ++k) std::memcpy(bytes.data() + k * 4, Little(values[k]).data(), 4);
   WriteBytes(bytes.data(), bytes.size());
   ++samples_;
 }
@@ -86,17 +117,25 @@ void PointCacheWriter::AddPacked(const std::string& float32_xyz) {
     throw PointCacheError(fmt::format("{}: sample {} has {} bytes, the cache needs {} ({} points)", path_, samples_,
                                       float32_xyz.size(), num_points_ * 12, num_points_));
   }
+  std::vector<float> values(float32_xyz.size() / 4);
+  for (std::size_t k = 0; k < values.size(); ++k) values[k] = FromLittle<float>(float32_xyz.data() + k * 4);
+  CheckFinite(values.data(), values.size());
   WriteBytes(float32_xyz.data(), float32_xyz.size());  // already float32 little-endian x y z
   ++samples_;
 }
 
 void PointCacheWriter::Close() {
   if (closed_) return;
-  out_.seekp(kSampleCountOffset);
   const auto count = Little(std::int32_t{samples_});
+  if (::lseek(fd_, kSampleCountOffset, SEEK_SET) != kSampleCountOffset) {
+    throw PointCacheError(fmt::format("{}: writing the point cache failed ({})", path_, std::strerror(errno)));
+  }
   WriteBytes(count.data(), count.size());
-  out_.close();
-  if (!out_) throw PointCacheError(fmt::format("{}: writing the point cache failed", path_));
+  const int fd = fd_;
+  fd_ = -1;
+  if (::close(fd) != 0) {
+    throw PointCacheError(fmt::format("{}: writing the point cache failed ({})", path_, std::strerror(errno)));
+  }
   std::error_code error;
   std::filesystem::rename(partial_path_, path_, error);
   if (error) throw PointCacheError(fmt::format("{}: cannot put the point cache in place ({})", path_, error.message()));

@@ -9,6 +9,7 @@
 #include <filesystem>
 #include <fstream>
 #include <iterator>
+#include <limits>
 
 #include "test_util.h"
 
@@ -141,6 +142,61 @@ TEST(PointCache, KnowsItsPaths) {
   EXPECT_FALSE(IsPointCachePath("out/frames"));
   EXPECT_FALSE(IsPointCachePath("pc2"));
   EXPECT_FALSE(IsPointCachePath("frame.obj"));
+}
+
+// A planted NAME.pc2.partial -> victim must not get the victim overwritten: the temporary is created afresh
+// (O_CREAT | O_EXCL | O_NOFOLLOW), a link in its place refused, a stale regular partial replaced.
+TEST(PointCache, APlantedPartialLinkIsNotFollowed) {
+  TempDir dir;
+  const std::string victim = dir.Write("victim.txt", "keep me");
+  const std::string path = dir.File("link.pc2");
+  std::filesystem::create_symlink(victim, path + ".partial");
+  try {
+    PointCacheWriter writer(path, 3);
+    writer.Add(Sample(3, 0.0));
+    writer.Close();
+    ADD_FAILURE() << "wrote through the link";
+  } catch (const PointCacheError& e) {
+    EXPECT_THAT(e.what(), HasSubstr("link.pc2.partial"));
+  }
+  EXPECT_EQ(ReadBytes(victim), "keep me");
+  EXPECT_TRUE(std::filesystem::is_symlink(path + ".partial")) << "the link is left for its owner to see";
+  EXPECT_FALSE(std::filesystem::exists(path));
+  // A dangling link, too.
+  const std::string dangling = dir.File("dangling.pc2");
+  std::filesystem::create_symlink(dir.File("nowhere.txt"), dangling + ".partial");
+  EXPECT_THROW(PointCacheWriter(dangling, 3), PointCacheError);
+  EXPECT_FALSE(std::filesystem::exists(dir.File("nowhere.txt")));
+  // A stale regular partial (a run killed mid-write) is replaced.
+  const std::string stale = dir.File("stale.pc2");
+  dir.Write("stale.pc2.partial", "half a cache");
+  {
+    PointCacheWriter writer(stale, 3);
+    writer.Add(Sample(3, 0.0));
+    writer.Close();
+  }
+  EXPECT_EQ(ReadPointCache(stale).samples.size(), 1u);
+  EXPECT_FALSE(std::filesystem::exists(stale + ".partial"));
+}
+
+// Samples are float32: a coordinate beyond it (inf once rounded) is refused, not written into the cache.
+TEST(PointCache, RefusesSamplesThatAreNotFiniteAsFloat32) {
+  TempDir dir;
+  const std::string path = dir.File("inf.pc2");
+  PointCacheWriter writer(path, 3);
+  Points huge = Sample(3, 0.0);
+  huge(1, 2) = 1e300;
+  EXPECT_THROW(writer.Add(huge), PointCacheError);
+  std::string packed(36, '\0');
+  const float inf = std::numeric_limits<float>::infinity();
+  std::memcpy(packed.data() + 8, &inf, 4);
+  try {
+    writer.AddPacked(packed);
+    ADD_FAILURE() << "an infinite sample was written";
+  } catch (const PointCacheError& e) {
+    EXPECT_THAT(e.what(), HasSubstr("non-finite"));
+  }
+  EXPECT_EQ(writer.samples(), 0);
 }
 
 }  // namespace

@@ -43,12 +43,13 @@ class PointCacheWriter {
 
  private:
   void WriteBytes(const char* data, std::size_t size);
+  void CheckFinite(const float* values, std::size_t count) const;
 
   std::string path_, partial_path_;
   int num_points_;
   int samples_ = 0;
   bool closed_ = false;
-  std::ofstream out_;
+  int fd_ = -1;  // the temporary, opened O_CREAT | O_EXCL | O_NOFOLLOW
 };
 
 struct PointCache {
