@@ -7,7 +7,6 @@
 #include <algorithm>
 #include <chrono>
 #include <cmath>
-#include <cstdlib>
 #include <cstring>
 #include <limits>
 #include <mutex>
@@ -284,11 +283,6 @@ class PathSolver {
     }
     const bool converged = summary.termination == MinimizerTermination::kConverged;
     newton_iterations += summary.iterations;
-    if (std::getenv("SPRINGBLEND_PATH_DEBUG")) {
-      fmt::print(stderr, "solve target {} alpha {:.6f} {} iterations {} cg {} factorizations {} residual {:.2e} -> {:.2e} {}\n",
-                 target_, alpha, correction ? "from-interpolant" : "predicted", summary.iterations, summary.cg_iterations,
-                 summary.factorizations, summary.initial_residual, summary.residual, summary.message);
-    }
     if (!converged && tentative) return {alpha, Eigen::MatrixXf(), std::numeric_limits<double>::infinity(), false};
     ++solves;
     Points solved(n, 3);
@@ -466,9 +460,6 @@ void BuildPath(const Rig& rig, int target, const TargetPathsOptions& options, Ta
       const double a = path->alphas[i], b = path->alphas[i + 1];
       const double error = check_errors[c];
       errors[i] = error;
-      if (std::getenv("SPRINGBLEND_PATH_DEBUG")) {
-        fmt::print(stderr, "target {} [{:.6f}, {:.6f}] error {:.3e}\n", target, a, b, error);
-      }
       if (b - a <= min_width) {
         path->certified[i] = 0;
       } else if (error <= options.tolerance) {

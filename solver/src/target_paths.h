@@ -45,10 +45,10 @@ struct TargetPath {
 };
 
 struct TargetPathsOptions {
-  int intervals = 16;          // base samples per unit of alpha (the sweeps' continuation step)
+  int intervals = 8;           // base samples per unit of alpha (the sweeps' continuation step)
   double extension = 0.25;     // beyond [0, 1] on both sides
   double tolerance = 1e-6;     // midpoint error, of the bounding-box diagonal
-  int max_samples = 96;        // per target
+  int max_samples = 64;        // per target
   const std::function<bool()>* stop = nullptr;  // asked between solves and Newton iterations
   // Called after each target's path is done (from the building thread, serialized by the caller's lock).
   std::function<void(int target, const TargetPath& path)> done;

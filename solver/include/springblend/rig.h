@@ -88,10 +88,10 @@ struct RigOptions {
   // equilibrium solved there, up to path_max_samples per target. Run in parallel over the targets.
   // Range: intervals [1, 64], extension [0, 2], tolerance (0, 0.1], max samples [4, 1024].
   bool target_paths = true;
-  int path_intervals = 16;
+  int path_intervals = 8;
   double path_extension = 0.25;
   double path_tolerance = 1e-6;
-  int path_max_samples = 96;
+  int path_max_samples = 64;
 
   // Throws Error(kInvalidInput) naming the field that is out of range.
   void Validate() const;
