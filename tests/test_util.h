@@ -15,6 +15,14 @@
 
 namespace springblend::testing {
 
+// How much slower the instrumented builds run (AddressSanitizer, ThreadSanitizer): liveness bounds in tests
+// (a build stops within a second of its stop check) scale by it, so they bound the work, not the instruments.
+#if defined(__SANITIZE_ADDRESS__) || defined(__SANITIZE_THREAD__)
+constexpr double kSlowdown = 10.0;
+#else
+constexpr double kSlowdown = 1.0;
+#endif
+
 inline std::string DataPath(const std::string& relative) {
   return std::string(SPRINGBLEND_TEST_DATA) + "/" + relative;
 }

@@ -176,17 +176,32 @@ class PathSolver {
     return weights;
   }
 
-  // The sculpted shape of a knot (alpha 0, an in-between's weight, 1): a zero correction when it is in
-  // balance (an unmasked shape: zero energy), else the equilibrium solved from it.
-  Sample End(double alpha, Predictor* predictor) {
-    const std::vector<double> weights = Weights(alpha);
-    const std::vector<double> shape_weights = rig_.ShapeWeights(weights);
-    const Points linear = LinearBlendShapes(rig_, shape_weights);
+  // The target alone at alpha: its weights, linear blend and conditions, with the springs' rest lengths set.
+  struct Setup {
+    std::vector<double> weights;
+    Points linear;
+    FrameConditions conditions;
+  };
+  Setup SetUp(double alpha) {
+    Setup setup;
+    setup.weights = Weights(alpha);
+    const std::vector<double> shape_weights = rig_.ShapeWeights(setup.weights);
+    setup.linear = LinearBlendShapes(rig_, shape_weights);
     std::vector<double> rest_lengths;
     BlendRestLengths(rig_, shape_weights, &rest_lengths);
     springs_.SetRestLengths(std::move(rest_lengths), rig_.spring_kind(), KindStiffness(rig_.options()),
                             StiffnessFloor(rig_));
-    const FrameConditions conditions = ConditionsOf(rig_, shape_weights, linear, {});
+    setup.conditions = ConditionsOf(rig_, shape_weights, setup.linear, {});
+    return setup;
+  }
+
+  // The sculpted shape of a knot (alpha 0, an in-between's weight, 1): a zero correction when it is in
+  // balance (an unmasked shape: zero energy), else the equilibrium solved from it.
+  Sample End(double alpha, Predictor* predictor) {
+    const Setup setup = SetUp(alpha);
+    const std::vector<double>& weights = setup.weights;
+    const Points& linear = setup.linear;
+    const FrameConditions& conditions = setup.conditions;
     Eigen::VectorXd x(3 * linear.rows());
     for (Eigen::Index v = 0; v < linear.rows(); ++v) x.segment<3>(3 * v) = linear.row(v).transpose();
     if (!HoldConditions(rig_, conditions, &x, &held_) ||
@@ -238,14 +253,10 @@ class PathSolver {
       throw Error(ErrorCode::kCancelled, "the rig build was cancelled");
     }
     const int n = rig_.num_vertices();
-    const std::vector<double> weights = Weights(alpha);
-    const std::vector<double> shape_weights = rig_.ShapeWeights(weights);
-    const Points linear = LinearBlendShapes(rig_, shape_weights);
-    std::vector<double> rest_lengths;
-    BlendRestLengths(rig_, shape_weights, &rest_lengths);
-    springs_.SetRestLengths(std::move(rest_lengths), rig_.spring_kind(), KindStiffness(rig_.options()),
-                            StiffnessFloor(rig_));
-    const FrameConditions conditions = ConditionsOf(rig_, shape_weights, linear, {});
+    const Setup setup = SetUp(alpha);
+    const std::vector<double>& weights = setup.weights;
+    const Points& linear = setup.linear;
+    const FrameConditions& conditions = setup.conditions;
     Eigen::VectorXd x;
     if (correction != nullptr) {
       Eigen::MatrixXd world = *correction;
