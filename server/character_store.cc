@@ -324,6 +324,9 @@ CharacterData Deserialize(const std::string& bytes) {
 }
 
 CharacterStore::CharacterStore(StoreOptions options) : options_(std::move(options)) {
+  // spdlog's registry is a function-local static of the (uninstrumented) library: construct it here, before
+  // the store's callers log from several threads, so its first use is not a race ThreadSanitizer reports.
+  spdlog::default_logger_raw();
   if (!options_.directory.empty()) {
     std::error_code ec;
     std::filesystem::create_directories(options_.directory, ec);
