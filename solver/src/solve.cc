@@ -242,6 +242,9 @@ SolveSummary Solver::Impl::Solve(const Frame& frame, Points* positions, const st
   if (!finished) {
     Minimize(diagonal_shift, &minimized);  // keeps the initial residual once iterations were counted
     summary.finish = Finish::kFull;
+    if (!options_.local_finish) {
+      for (int v = 0; v < n; ++v) summary.free_vertices += !(base_held_[3 * v] && base_held_[3 * v + 1] && base_held_[3 * v + 2]);
+    }
     summary.solved_vertices = summary.free_vertices;
   }
   int contact_rounds = 0;
