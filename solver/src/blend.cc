@@ -111,6 +111,30 @@ void ValidateWeights(const Rig& rig, const std::vector<double>& weights) {
                   fmt::format("weights[{}] (target '{}') is not finite ({})", t, rig.target_names()[t],
                               weights[t]));
     }
+    if (std::abs(weights[t]) > kMaxTargetWeight) {
+      throw Error(ErrorCode::kInvalidInput,
+                  fmt::format("weights[{}] (target '{}') = {} is beyond +-{:g}: the blended shape would overflow", t,
+                              rig.target_names()[t], weights[t], kMaxTargetWeight));
+    }
+  }
+  // Shapes past the targets are the in-betweens, then the combinations (Rig::num_shapes).
+  const std::vector<double> shape_weights = rig.ShapeWeights(weights);
+  const size_t combinations = std::min(rig.combination_names().size(), shape_weights.size());
+  const size_t first_combination = shape_weights.size() - combinations;
+  for (size_t s = 0; s < shape_weights.size(); ++s) {
+    const double w = shape_weights[s];
+    if (s >= first_combination) {
+      if (!(std::abs(w) <= kMaxTargetWeight)) {
+        throw Error(ErrorCode::kInvalidInput,
+                    fmt::format("combination '{}' has weight {} (the product of its drivers' weights), beyond "
+                                "+-{:g}: the blended shape would overflow",
+                                rig.combination_names()[s - first_combination], w, kMaxTargetWeight));
+      }
+    } else if (!(std::abs(w) <= kMaxShapeWeight)) {
+      throw Error(ErrorCode::kInvalidInput,
+                  fmt::format("sculpted shape {} ({}) has weight {}, beyond +-{:g}: the blended shape would overflow",
+                              s, rig.target(static_cast<int>(s)).name, w, kMaxShapeWeight));
+    }
   }
 }
 

@@ -9,11 +9,11 @@
 #include <cmath>
 #include <deque>
 #include <map>
-#include <set>
 
 #include "anchor.h"
 #include "rig_builder.h"
 #include "springblend/error.h"
+#include "springblend/solve.h"
 
 namespace springblend {
 
@@ -24,6 +24,25 @@ namespace {
 }
 
 }  // namespace
+
+void ValidateInbetweenWeights(const std::vector<double>& weights, const std::function<std::string(size_t)>& field) {
+  const auto fail = [](const std::string& what) { throw Error(ErrorCode::kInvalidInput, what); };
+  for (size_t i = 0; i < weights.size(); ++i) {
+    const double w = weights[i];
+    if (!(w > 0.0 && w < 1.0)) fail(fmt::format("{} = {} is outside (0, 1)", field(i), w));
+    if (w < kMinInbetweenSpacing || w > 1.0 - kMinInbetweenSpacing) {
+      fail(fmt::format("{} = {} is within {:g} of {}: in-between weights must be in [{:g}, 1 - {:g}]", field(i), w,
+                       kMinInbetweenSpacing, w < 0.5 ? 0 : 1, kMinInbetweenSpacing, kMinInbetweenSpacing));
+    }
+    for (size_t j = 0; j < i; ++j) {
+      if (w == weights[j]) fail(fmt::format("{} = {} is repeated", field(i), w));
+      if (std::abs(w - weights[j]) < kMinInbetweenSpacing) {
+        fail(fmt::format("{} = {} is within {:g} of {} = {}: in-betweens must be at least {:g} apart", field(i), w,
+                         kMinInbetweenSpacing, field(j), weights[j], kMinInbetweenSpacing));
+      }
+    }
+  }
+}
 
 void RigBuilder::ExpandSpecs(std::vector<TargetSpec> specs) {
   Rig& rig = r_;
@@ -62,6 +81,10 @@ void RigBuilder::ExpandSpecs(std::vector<TargetSpec> specs) {
       }
       for (size_t v = 0; v < spec.mask.size(); ++v) {
         if (!std::isfinite(spec.mask[v])) Fail(spec.name, fmt::format("mask[{}] is not finite", v));
+        if (std::abs(spec.mask[v]) > kMaxTargetWeight) {
+          Fail(spec.name, fmt::format("mask[{}] = {} is beyond +-{:g}: the blended shape would overflow", v,
+                                      spec.mask[v], kMaxTargetWeight));
+        }
       }
     }
     if (!spec.combination.empty()) continue;
@@ -79,15 +102,12 @@ void RigBuilder::ExpandSpecs(std::vector<TargetSpec> specs) {
       continue;
     }
     const int t = index[spec.name];
-    std::set<double> seen;
-    for (size_t i = 0; i < spec.inbetweens.size(); ++i) {
-      Inbetween& inbetween = spec.inbetweens[i];
-      if (!(inbetween.weight > 0.0 && inbetween.weight < 1.0)) {
-        Fail(spec.name, fmt::format("inbetweens[{}].weight = {} is outside (0, 1)", i, inbetween.weight));
-      }
-      if (!seen.insert(inbetween.weight).second) {
-        Fail(spec.name, fmt::format("inbetweens[{}].weight = {} is repeated", i, inbetween.weight));
-      }
+    std::vector<double> weights;
+    for (const Inbetween& inbetween : spec.inbetweens) weights.push_back(inbetween.weight);
+    try {
+      ValidateInbetweenWeights(weights, [](size_t i) { return fmt::format("inbetweens[{}].weight", i); });
+    } catch (const Error& e) {
+      Fail(spec.name, e.what());
     }
     std::sort(spec.inbetweens.begin(), spec.inbetweens.end(),
               [](const Inbetween& a, const Inbetween& b) { return a.weight < b.weight; });

@@ -332,6 +332,31 @@ Points Solver::Start(const std::vector<double>& weights) const {
 }
 void Solver::SetColliders(std::vector<Collider> colliders) { impl_->SetColliders(std::move(colliders)); }
 const Points& Solver::all_positions() const { return impl_->all_positions(); }
+std::int64_t Solver::bytes() const { return BytesFor(*impl_->rig_, impl_->options_); }
+
+std::int64_t Solver::BytesFor(const Rig& rig, const SolveOptions& options) {
+  // Measured (glibc's heap after one frame, bench meshes of 471 to 13k vertices): 124-127 bytes per spring
+  // from the start, 8.6-10 bytes per entry of the full system's factor once factored (values, CHOLMOD's
+  // supernodal indices); frames that hold many vertices factor a smaller system beside it (Select), hence
+  // 16. L-BFGS keeps its history; the Laplacian-preconditioned method factors the Laplacian (a third of
+  // the unknowns) instead, about 14 bytes per Hessian entry in all. Linear frames factor nothing.
+  const std::int64_t n = rig.num_vertices(), springs = rig.num_springs();
+  const std::int64_t vertex = 3 * static_cast<std::int64_t>(sizeof(double)) * n;  // one #V x 3 array
+  if (options.linear) return 128 * springs + 4 * vertex;
+  const std::int64_t factor = rig.internals().cholesky->FactorNonzeros();
+  const std::int64_t hessian = rig.summary().hessian_nonzeros;
+  std::int64_t bytes = 160 * springs + 16 * vertex;
+  if (options.method == SolveMethod::kNewtonLaplacian) {
+    bytes += 20 * hessian;
+  } else {
+    bytes += 16 * factor;
+  }
+  if (options.method == SolveMethod::kLbfgs) {
+    bytes += 2 * static_cast<std::int64_t>(options.lbfgs_history) * vertex + 2 * factor;
+  }
+  return bytes;
+}
+
 const Rig& Solver::rig() const { return *impl_->rig_; }
 const SolveOptions& Solver::options() const { return impl_->options_; }
 void Solver::set_options(const SolveOptions& options) { impl_->SetOptions(options); }

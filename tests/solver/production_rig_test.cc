@@ -208,6 +208,32 @@ TEST(ProductionRig, BadSpecsAreRefusedNamingTargetAndField) {
     EXPECT_THAT(build(std::move(specs)).what(),
                 AllOf(HasSubstr("target 'bend'"), HasSubstr("inbetweens[1].weight = 0.5 is repeated")));
   }
+  // In-betweens a spacing from 0, 1 and each other: their blend's slope is 1 / the gap (1e-300 gave 1e300).
+  for (const double weight : {1e-300, 1.0 - 1e-16}) {
+    std::vector<TargetSpec> specs;
+    specs.push_back(Spec("bend", "cylinder/poses-2_cylinder-4.obj"));
+    specs[0].inbetweens.push_back({weight, LoadMesh(DataPath("cylinder/poses-2_cylinder-2.obj"))});
+    EXPECT_THAT(build(std::move(specs)).what(),
+                AllOf(HasSubstr("target 'bend'"), HasSubstr("inbetweens[0].weight"),
+                      HasSubstr(weight < 0.5 ? "within 1e-06 of 0" : "within 1e-06 of 1")));
+  }
+  {
+    std::vector<TargetSpec> specs;
+    specs.push_back(Spec("bend", "cylinder/poses-2_cylinder-4.obj"));
+    specs[0].inbetweens.push_back({0.5, LoadMesh(DataPath("cylinder/poses-2_cylinder-2.obj"))});
+    specs[0].inbetweens.push_back({0.5 + 1e-9, LoadMesh(DataPath("cylinder/poses-2_cylinder-3.obj"))});
+    EXPECT_THAT(build(std::move(specs)).what(),
+                AllOf(HasSubstr("target 'bend'"), HasSubstr("inbetweens[1].weight"),
+                      HasSubstr("within 1e-06 of inbetweens[0].weight = 0.5")));
+  }
+  {
+    std::vector<TargetSpec> specs;
+    specs.push_back(Spec("bend", "cylinder/poses-2_cylinder-4.obj"));
+    specs[0].mask.assign(specs[0].mesh.vertices.rows(), 1.0);
+    specs[0].mask[7] = 1e9;
+    EXPECT_THAT(build(std::move(specs)).what(),
+                AllOf(HasSubstr("target 'bend'"), HasSubstr("mask[7] = 1000000000 is beyond +-1000")));
+  }
   {
     std::vector<TargetSpec> specs = CylinderCombination();
     specs[2].combination = {"a", "missing"};
@@ -239,6 +265,30 @@ TEST(ProductionRig, BadSpecsAreRefusedNamingTargetAndField) {
     specs.push_back(Spec("bend", "cylinder/poses-2_cylinder-3.obj"));
     EXPECT_THAT(build(std::move(specs)).what(), AllOf(HasSubstr("target 'bend'"), HasSubstr("name is used twice")));
   }
+}
+
+// The weights a frame may give (ValidateWeights, which Solve, the blend helpers and the CLI's local blend call):
+// each within +-kMaxTargetWeight, a combination's product of them too, and the shapes' effective weights (an
+// in-between extrapolates with its last segment's slope) within +-kMaxShapeWeight.
+TEST(ProductionRig, WeightsWhoseShapesWouldOverflowAreRefused) {
+  RigOptions options;
+  options.target_paths = false;
+  const auto combination = Rig::Build(Rest("cylinder/cylinder.obj"), CylinderCombination(), options);
+  EXPECT_THAT(CatchError([&] { ValidateWeights(*combination, {100, 100}); }).what(),
+              HasSubstr("combination 'a_b' has weight 10000 (the product of its drivers' weights), beyond +-1000"));
+  EXPECT_THAT(CatchError([&] { LinearBlend(*combination, {2000, 0}); }).what(),
+              HasSubstr("weights[0] (target 'a') = 2000 is beyond +-1000"));
+  EXPECT_NO_THROW(ValidateWeights(*combination, {30, -30}));
+
+  TargetSpec bend = Spec("bend", "cylinder/poses-2_cylinder-4.obj");
+  bend.inbetweens.push_back({1.0 - 1e-4, LoadMesh(DataPath("cylinder/poses-2_cylinder-2.obj"))});
+  std::vector<TargetSpec> specs;
+  specs.push_back(std::move(bend));
+  const auto steep = Rig::Build(Rest("cylinder/cylinder.obj"), std::move(specs), options);
+  // Past 1 the last segment's slope is 1e4: weight 1000 gives the full shape about 1e7.
+  EXPECT_THAT(CatchError([&] { ValidateWeights(*steep, {1000}); }).what(),
+              AllOf(HasSubstr("sculpted shape 0 (bend)"), HasSubstr("beyond +-1e+06")));
+  EXPECT_NO_THROW(ValidateWeights(*steep, {1.0}));
 }
 
 }  // namespace

@@ -158,9 +158,17 @@ struct RigSummary {
   std::vector<std::string> notes;  // decisions taken while building, in words
 };
 
+// The least distance of an in-between's weight from 0, 1 and the target's other in-betweens: the blend's slope
+// between two knots is 1 / their distance (an in-between at 1e-300 gave weights of 1e300).
+inline constexpr double kMinInbetweenSpacing = 1e-6;
+// Throws Error(kInvalidInput) naming the entry (`field(i)`, e.g. "inbetweens[1].weight") unless every weight is in
+// (0, 1) and at least kMinInbetweenSpacing from 0, 1 and the others. Rig::Build checks a target's in-betweens
+// with it; a server checks an upload's header with it before the meshes arrive.
+void ValidateInbetweenWeights(const std::vector<double>& weights, const std::function<std::string(size_t)>& field);
+
 // A shape reached on the way to a target's full shape (Maya's in-between target).
 struct Inbetween {
-  double weight = 0.0;  // in (0, 1), distinct per target
+  double weight = 0.0;  // in (0, 1), kMinInbetweenSpacing from 0, 1 and the target's other in-betweens
   TriangleMesh mesh;
 };
 
