@@ -1,5 +1,6 @@
 #include "character_store.h"
 
+#include <ext/stdio_filebuf.h>
 #include <fcntl.h>
 #include <openssl/evp.h>
 #include <sys/file.h>
@@ -143,6 +144,47 @@ bool ReadCacheFile(std::istream& in, std::string* payload, std::optional<std::st
   }
   *precomputed = std::move(bytes);
   return true;
+}
+
+// A cache file opened for reading: a regular file only, never through a symbolic link, and without blocking
+// (a FIFO named like a cache file held the metadata pool's thread for good). Anything else is skipped with a
+// log line, and never removed.
+class CacheFileReader {
+ public:
+  explicit CacheFileReader(const std::string& path) {
+    const int fd = ::open(path.c_str(), O_RDONLY | O_NOFOLLOW | O_NONBLOCK | O_CLOEXEC);
+    if (fd < 0) {
+      if (errno == ELOOP) spdlog::warn("cache file {} is a symbolic link: not read", path);
+      return;
+    }
+    struct stat status {};
+    if (::fstat(fd, &status) != 0 || !S_ISREG(status.st_mode)) {
+      ::close(fd);
+      spdlog::warn("{} is not a regular file: not read as a cache file, and left alone", path);
+      return;
+    }
+    ::fcntl(fd, F_SETFL, ::fcntl(fd, F_GETFL) & ~O_NONBLOCK);
+    buffer_ = std::make_unique<__gnu_cxx::stdio_filebuf<char>>(fd, std::ios::in | std::ios::binary);  // owns fd
+    stream_ = std::make_unique<std::istream>(buffer_.get());
+  }
+  explicit operator bool() const { return stream_ != nullptr; }
+  std::istream& stream() { return *stream_; }
+
+ private:
+  std::unique_ptr<__gnu_cxx::stdio_filebuf<char>> buffer_;
+  std::unique_ptr<std::istream> stream_;
+};
+
+// Removes a cache file (or a symbolic link named like one, not what it points to); anything else with its name
+// (a directory, a FIFO) is left alone with a log line. True when something was removed.
+bool RemoveCacheFile(const std::string& path) {
+  struct stat status {};
+  if (::lstat(path.c_str(), &status) != 0) return false;
+  if (!S_ISREG(status.st_mode) && !S_ISLNK(status.st_mode)) {
+    spdlog::warn("{} is not a regular file: not removed", path);
+    return false;
+  }
+  return ::unlink(path.c_str()) == 0;
 }
 
 bool WriteAll(int fd, std::string_view bytes) {
@@ -331,6 +373,18 @@ CharacterStore::CharacterStore(StoreOptions options) : options_(std::move(option
     std::error_code ec;
     std::filesystem::create_directories(options_.directory, ec);
     if (ec) throw Error(ErrorCode::kInvalidInput, "cannot create the cache directory " + options_.directory + ": " + ec.message());
+    // A directory we cannot write serves what it holds, but keeps nothing new: say so now, not at each upload.
+    const std::string probe = fmt::format("{}/.springblend-write-test.{}.{:016x}", options_.directory, ::getpid(),
+                                          RandomSuffix());
+    const int fd = ::open(probe.c_str(), O_WRONLY | O_CREAT | O_EXCL | O_NOFOLLOW | O_CLOEXEC, 0600);
+    if (fd < 0) {
+      spdlog::warn("the cache directory {} is not writable ({}): uploads will be served from memory only, not kept "
+                   "for restarts or other replicas",
+                   options_.directory, std::strerror(errno));
+    } else {
+      ::close(fd);
+      ::unlink(probe.c_str());
+    }
   }
 }
 
@@ -358,10 +412,14 @@ void CharacterStore::WriteFile(const std::string& id, const std::string& payload
   int fd = -1;
   for (int attempt = 0; attempt < 3 && fd < 0; ++attempt) {
     temporary = fmt::format("{}.tmp.{}.{:016x}", path, ::getpid(), RandomSuffix());
-    fd = ::open(temporary.c_str(), O_WRONLY | O_CREAT | O_EXCL | O_CLOEXEC, 0644);
+    fd = ::open(temporary.c_str(), O_WRONLY | O_CREAT | O_EXCL | O_NOFOLLOW | O_CLOEXEC, 0644);
     if (fd < 0) {
       if (errno == EEXIST) continue;
-      return;  // the cache directory is an optimisation; serving goes on from memory
+      // The cache directory is an optimisation; serving goes on from memory, said and counted.
+      ++write_failures_;
+      spdlog::warn("cache file {} not written: cannot create {} ({}); the character is served from memory only",
+                   path, temporary, std::strerror(errno));
+      return;
     }
     // A starting replica may have opened the new file in the moment before the lock: it then holds the lock
     // or has already unlinked the file. Either way, start over under another name. (A file system without
@@ -381,7 +439,12 @@ void CharacterStore::WriteFile(const std::string& id, const std::string& payload
   // The parts one after the other rather than joined: the paths may be hundreds of megabytes.
   const bool ok = WriteAll(fd, header) && WriteAll(fd, payload) && WriteAll(fd, Sha256(precomputed)) &&
                   WriteAll(fd, precomputed) && ::fsync(fd) == 0;
-  if (!ok || std::rename(temporary.c_str(), path.c_str()) != 0) std::remove(temporary.c_str());
+  if (!ok || std::rename(temporary.c_str(), path.c_str()) != 0) {
+    ++write_failures_;
+    spdlog::warn("cache file {} not written ({}); the character is served from memory only", path,
+                 std::strerror(errno));
+    ::unlink(temporary.c_str());
+  }
   ::close(fd);  // releases the lock, after the rename
 }
 
@@ -420,8 +483,9 @@ CharacterStore::Cleanup CharacterStore::RemoveStaleTemporaries() {
 
 std::optional<CharacterStore::CacheFile> CharacterStore::ReadFile(const std::string& id) {
   if (options_.directory.empty()) return std::nullopt;
-  std::ifstream in(PathOf(id), std::ios::binary);
-  if (!in) return std::nullopt;
+  CacheFileReader reader(PathOf(id));
+  if (!reader) return std::nullopt;
+  std::istream& in = reader.stream();
   CacheFile file;
   std::string why;
   bool ok = ReadCacheFile(in, &file.payload, &file.precomputed, &why);
@@ -444,7 +508,7 @@ std::optional<CharacterStore::CacheFile> CharacterStore::ReadFile(const std::str
     in.clear();
     in.seekg(0, std::ios::end);
     const std::streamoff size = in.tellg();
-    const bool removed = std::remove(PathOf(id).c_str()) == 0;
+    const bool removed = RemoveCacheFile(PathOf(id));
     spdlog::warn("cache file {} is corrupt ({} bytes, {}): {}", PathOf(id), size, why,
                  removed ? "removed" : "could not be removed");
     return std::nullopt;
@@ -617,7 +681,7 @@ std::pair<std::shared_ptr<const CharacterStore::Entry>, bool> CharacterStore::Ac
   }
   // A delete that came while this built has removed the file already, or finds none: this build wrote it
   // afterwards. Either way it goes.
-  if (deleted && !options_.directory.empty()) std::filesystem::remove(PathOf(id));
+  if (deleted && !options_.directory.empty()) RemoveCacheFile(PathOf(id));
   promise.set_value(entry);
   return {entry, known};
 }
@@ -655,7 +719,9 @@ std::vector<CharacterStore::Listed> CharacterStore::List() {
       verified_[id] = stamp;
     }
     // The name is the payload's first field: read just the header, not the meshes.
-    std::ifstream in(file.path(), std::ios::binary);
+    CacheFileReader reader(file.path().string());
+    if (!reader) continue;
+    std::istream& in = reader.stream();
     char magic[sizeof(kFileMagic)];
     const int version = in.read(magic, sizeof(magic)) ? FileVersion(magic) : 0;
     std::uint32_t length = 0;
@@ -689,13 +755,15 @@ bool CharacterStore::Delete(const std::string& id) {
       found = true;
     }
   }
-  if (!options_.directory.empty()) found = std::filesystem::remove(PathOf(id)) || found;
+  if (!options_.directory.empty()) found = RemoveCacheFile(PathOf(id)) || found;
   return found;
 }
 
 StoreStats CharacterStore::stats() const {
   std::lock_guard lock(mutex_);
-  return stats_;
+  StoreStats stats = stats_;
+  stats.write_failures = write_failures_.load();
+  return stats;
 }
 
 }  // namespace springblend::server

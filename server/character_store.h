@@ -9,6 +9,7 @@
 // SHA-256(payload) | payload) still loads; its paths are solved and the file is rewritten as version 2.
 #pragma once
 
+#include <atomic>
 #include <cstdint>
 #include <filesystem>
 #include <functional>
@@ -62,6 +63,7 @@ struct StoreStats {
   std::int64_t paths_loaded = 0;     // rebuilds from the directory that loaded their target paths from the file
   std::int64_t upgraded_files = 0;   // cache files rewritten because their paths were missing (v1) or did not fit
   std::int64_t cancelled_builds = 0;  // builds their stop check ended
+  std::int64_t write_failures = 0;    // cache files that could not be written (a read-only or full directory)
 };
 
 // Asked while a build runs (RigBuildControl::stop, on the building threads): true ends the build with
@@ -152,6 +154,7 @@ class CharacterStore {
   };
   std::unordered_map<std::string, FileStamp> verified_;  // cache files List has checked
   StoreStats stats_;
+  mutable std::atomic<std::int64_t> write_failures_{0};  // StoreStats::write_failures (WriteFile is const)
 };
 
 }  // namespace springblend::server

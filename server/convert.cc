@@ -26,8 +26,6 @@ Eigen::Vector3d ToVector(const v1::Vec3& v) { return {v.x(), v.y(), v.z()}; }
 // Coordinates, radii and extents are bounded well inside float32; non-finite ones are left to the solver's
 // checks (which name them in their own words).
 constexpr double kMaxCoordinate = 1e12;
-// The least distance of an in-between weight from 0, 1 and the target's other in-betweens.
-constexpr double kInbetweenSpacing = 1e-6;
 
 void CheckMagnitude(double value, const std::function<std::string()>& field) {
   if (!std::isfinite(value)) return;
@@ -133,26 +131,12 @@ TriangleMesh MeshFromArrays(const v1::MeshArrays& arrays, int collider, const Me
   return mesh;
 }
 
-// In-between weights in (0, 1) (the solver checks that, and that they differ) at least kInbetweenSpacing from
-// 0, 1 and each other: the blend's slope between two knots is 1 / their distance, and 1e-300 gave 1e300.
+// The solver's in-between rule, checked on the header so a bad rig is refused before its meshes arrive.
 void CheckInbetweenWeights(const std::vector<double>& weights, int t, const std::string& name) {
-  const auto field = [&](size_t i) {
-    return fmt::format("header.targets[{}].inbetween_weights[{}] (target '{}')", t, i, Printable(name));
-  };
-  for (size_t i = 0; i < weights.size(); ++i) {
-    const double w = weights[i];
-    if (w > 0.0 && w < 1.0 && (w < kInbetweenSpacing || w > 1.0 - kInbetweenSpacing)) {
-      Invalid(fmt::format("{} = {} is within {:g} of {}: in-between weights must be in [{:g}, 1 - {:g}]", field(i),
-                          w, kInbetweenSpacing, w < 0.5 ? 0 : 1, kInbetweenSpacing, kInbetweenSpacing));
-    }
-    for (size_t j = 0; j < i; ++j) {
-      const double gap = std::abs(w - weights[j]);
-      if (gap > 0.0 && gap < kInbetweenSpacing) {
-        Invalid(fmt::format("{} = {} is within {:g} of inbetween_weights[{}] = {}: in-betweens must be at least "
-                            "{:g} apart",
-                            field(i), w, kInbetweenSpacing, j, weights[j], kInbetweenSpacing));
-      }
-    }
+  try {
+    ValidateInbetweenWeights(weights, [](size_t i) { return fmt::format("inbetween_weights[{}]", i); });
+  } catch (const Error& e) {
+    Invalid(fmt::format("header.targets[{}] (target '{}'): {}", t, Printable(name), e.what()));
   }
 }
 
@@ -365,18 +349,10 @@ CharacterData UploadAssembler::Finish() {
     std::string().swap(piece.bytes);
   }
   pieces_.clear();
-  // Coordinates well inside float32 (answers are float32; an uploaded 1e300 came back as inf), masks within
-  // the weights' bound. Non-finite values are the solver's to refuse.
+  // Coordinates well inside float32 (answers are float32; an uploaded 1e300 came back as inf). Non-finite
+  // values, and masks beyond the weights' bound, are the solver's to refuse (Rig::Build).
   for (size_t k = 0; k < shapes.size(); ++k) {
     CheckMagnitude(shapes[k], k == 0 ? std::string("the rest shape:") : fmt::format("shape {}:", k));
-  }
-  for (size_t k = 0; k < masks.size(); ++k) {
-    for (size_t v = 0; v < masks[k].size(); ++v) {
-      if (std::isfinite(masks[k][v]) && std::abs(masks[k][v]) > limits_.max_weight) {
-        Fail(fmt::format("the mask of target '{}' has {} at vertex {}, beyond +-{}: the blended shape would overflow",
-                         Printable(data_.target_names[mask_owner_[k]]), masks[k][v], v, limits_.max_weight));
-      }
-    }
   }
   // Shapes past the targets are the in-betweens, target by target.
   const size_t targets = data_.target_names.size();
@@ -480,53 +456,20 @@ std::vector<Collider> ToColliders(const google::protobuf::RepeatedPtrField<v1::C
           Invalid("no shape set");
       }
     } catch (const Error& e) {
-      Invalid(fmt::format("colliders[{}]: {}", i, e.what()));
+      // Prefixed once: a mesh's own messages already name it by its source (colliders[0].mesh_obj).
+      const std::string at = fmt::format("colliders[{}]", i), what = e.what();
+      Invalid(what.rfind(at, 0) == 0 ? what : at + ": " + what);
     }
   }
   return out;
 }
 
-namespace {
-
-// Effective weights of in-betweens and full shapes may exceed the frame's weights (an in-between's segment
-// slope is at most 1 / kInbetweenSpacing): up to this factor times Limits::max_weight.
-constexpr double kMaxShapeWeightFactor = 1e3;
-
-void CheckShapeWeights(const Rig& rig, const std::vector<double>& weights, size_t f, const Limits& limits) {
-  const std::vector<double> shape_weights = rig.ShapeWeights(weights);
-  const size_t combinations = rig.combination_names().size();
-  const size_t first_combination = shape_weights.size() - std::min(combinations, shape_weights.size());
-  for (size_t s = 0; s < shape_weights.size(); ++s) {
-    const double w = shape_weights[s];
-    if (s >= first_combination) {
-      // A combination is on by the product of its drivers' weights: the same guard as a weight.
-      if (!(std::abs(w) <= limits.max_weight)) {
-        Invalid(fmt::format("frames[{}]: combination '{}' has weight {} (the product of its drivers' weights), "
-                            "beyond +-{}: the blended shape would overflow",
-                            f, Printable(rig.combination_names()[s - first_combination]), w, limits.max_weight));
-      }
-    } else if (!(std::abs(w) <= kMaxShapeWeightFactor * limits.max_weight)) {
-      // In-betweens extrapolate with the slope of their last segment.
-      Invalid(fmt::format("frames[{}]: sculpted shape {} ({}) has weight {}, beyond +-{}: the blended shape would "
-                          "overflow",
-                          f, s, s < rig.target_names().size() ? "target '" + Printable(rig.target_names()[s]) + "'"
-                                                              : std::string("an in-between"),
-                          w, kMaxShapeWeightFactor * limits.max_weight));
-    }
-  }
-}
-
-}  // namespace
-
-Frame ToFrame(const v1::FrameRequest& in, const Rig& rig, size_t colliders, size_t f, const Limits& limits) {
+Frame ToFrame(const v1::FrameRequest& in, const Rig& rig, size_t colliders, size_t f) {
   Frame frame;
   frame.weights.assign(in.weights().begin(), in.weights().end());
-  for (size_t t = 0; t < frame.weights.size(); ++t) {
-    if (std::isfinite(frame.weights[t]) && std::abs(frame.weights[t]) > limits.max_weight) {
-      Invalid(fmt::format("frames[{}].weights[{}] = {} is beyond +-{}: the blended shape would overflow", f, t,
-                          frame.weights[t], limits.max_weight));
-    }
-  }
+  // Exactly as large as FrameBytes counts.
+  frame.pins.reserve(static_cast<size_t>(std::min(in.pins_size(), rig.num_surface_vertices())));
+  frame.collider_transforms.reserve(static_cast<size_t>(std::min<int>(in.collider_transforms_size(), colliders)));
   if (in.collider_transforms_size() > static_cast<int>(colliders)) {
     Invalid(fmt::format("frames[{}]: collider_transforms has {} entries but there are {} colliders", f,
                         in.collider_transforms_size(), colliders));
@@ -561,7 +504,6 @@ Frame ToFrame(const v1::FrameRequest& in, const Rig& rig, size_t colliders, size
   } catch (const Error& e) {
     Invalid(fmt::format("frames[{}]: {}", f, e.what()));
   }
-  CheckShapeWeights(rig, frame.weights, f, limits);
   return frame;
 }
 
@@ -576,7 +518,7 @@ void CheckSolved(const Points& positions, size_t index) {
   }
 }
 
-std::int64_t StreamBytes(const google::protobuf::RepeatedPtrField<v1::Collider>& colliders, const Rig& rig) {
+std::int64_t StreamBytes(const google::protobuf::RepeatedPtrField<v1::Collider>& colliders) {
   // A mesh collider holds its text's worth of vertices and faces several times over (our arrays, CGAL's
   // half-edge mesh, the AABB tree and its distance-query tree): about 16 bytes kept per byte of OBJ text, and
   // at most as much per byte of its arrays (a vertex is 24 bytes there, about as many as an OBJ line).
@@ -585,8 +527,41 @@ std::int64_t StreamBytes(const google::protobuf::RepeatedPtrField<v1::Collider>&
     bytes += 16 * static_cast<std::int64_t>(c.mesh_obj().size() + c.mesh().positions().size() +
                                             c.mesh().triangles().size());
   }
-  // The solver's state: positions, forces, the factorization (several copies of a #V x 3 array, and more).
-  return bytes + 512LL * rig.num_vertices();
+  return bytes;
+}
+
+namespace {
+
+// A repeated message field holds a pointer per element and the element's own object (and its sub-messages).
+constexpr std::int64_t kPointer = sizeof(void*);
+constexpr std::int64_t kParsedPin = kPointer + sizeof(v1::Pin) + sizeof(v1::Vec3);
+constexpr std::int64_t kParsedTransform = kPointer + sizeof(v1::Transform) + sizeof(v1::Vec3);
+
+std::int64_t FrameBytes(size_t weights, size_t pins, size_t transforms) {
+  return static_cast<std::int64_t>(sizeof(Frame) + weights * sizeof(double) + pins * sizeof(Pin) +
+                                   transforms * sizeof(RigidTransform));
+}
+
+}  // namespace
+
+std::int64_t RequestBytes(const v1::SolveRequest& request) {
+  std::int64_t bytes = sizeof(v1::SolveRequest) + static_cast<std::int64_t>(request.character_id().size());
+  for (const v1::Collider& c : request.colliders()) bytes += kPointer + static_cast<std::int64_t>(c.ByteSizeLong());
+  for (const v1::FrameRequest& f : request.frames()) {
+    bytes += kPointer + static_cast<std::int64_t>(sizeof(v1::FrameRequest)) +
+             f.weights_size() * static_cast<std::int64_t>(sizeof(double)) + f.pins_size() * kParsedPin +
+             f.collider_transforms_size() * kParsedTransform;
+  }
+  return bytes;
+}
+
+std::int64_t FrameBytes(const v1::FrameRequest& frame) {
+  return FrameBytes(static_cast<size_t>(frame.weights_size()), static_cast<size_t>(frame.pins_size()),
+                    static_cast<size_t>(frame.collider_transforms_size()));
+}
+
+std::int64_t FrameBytes(const Frame& frame) {
+  return FrameBytes(frame.weights.capacity(), frame.pins.capacity(), frame.collider_transforms.capacity());
 }
 
 SolveJob ToSolveJob(const v1::SolveRequest& request, const Rig& rig, const Limits& limits,
@@ -600,7 +575,7 @@ SolveJob ToSolveJob(const v1::SolveRequest& request, const Rig& rig, const Limit
   job.colliders = ToColliders(request.colliders(), limits, stopped);
   for (int f = 0; f < request.frames_size(); ++f) {
     if (f % 1024 == 0 && stopped && stopped()) throw CancelledError(fmt::format("stopped while reading frames[{}]", f));
-    job.frames.push_back(ToFrame(request.frames(f), rig, job.colliders.size(), static_cast<size_t>(f), limits));
+    job.frames.push_back(ToFrame(request.frames(f), rig, job.colliders.size(), static_cast<size_t>(f)));
   }
   return job;
 }

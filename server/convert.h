@@ -23,7 +23,6 @@ struct Limits {
   int max_frames = 100'000;
   size_t max_name_bytes = 256;  // a character's name and each target name
   int max_colliders = 64;
-  double max_weight = 1e3;      // |weight| of one target in a frame; larger ones overflow the solve
   // A mesh collider's OBJ text (checked in a linear pass before OpenMesh) and the mesh (before CGAL).
   MeshTextLimits collider_text{100'000, 200'000, 256, 256};
   MeshColliderLimits collider{100'000, 200'000, 256};
@@ -89,11 +88,18 @@ std::vector<Collider> ToColliders(const google::protobuf::RepeatedPtrField<v1::C
                                   const Limits& limits, const std::function<bool()>& stopped = {});
 void ToOptions(const v1::SolveOptions& options, SolveJob* job);
 // `index` names the frame in messages: frames[index].
-Frame ToFrame(const v1::FrameRequest& request, const Rig& rig, size_t colliders, size_t index, const Limits& limits);
+Frame ToFrame(const v1::FrameRequest& request, const Rig& rig, size_t colliders, size_t index);
 // Throws Error(kNumerical) naming the frame when a solve returned non-finite positions.
 void CheckSolved(const Points& positions, size_t index);
-// What a stream with these colliders holds while open (its colliders and solver state), for the memory budget.
-std::int64_t StreamBytes(const google::protobuf::RepeatedPtrField<v1::Collider>& colliders, const Rig& rig);
+// What a stream with these colliders holds while open (the converted colliders), for the memory budget; each of
+// its Solvers is counted apart (Solver::bytes).
+std::int64_t StreamBytes(const google::protobuf::RepeatedPtrField<v1::Collider>& colliders);
+// What a parsed Solve request holds in memory (its messages, their repeated fields), from its counts, for the
+// memory budget: several times its bytes on the wire for a request of pins.
+std::int64_t RequestBytes(const v1::SolveRequest& request);
+// What a frame holds once converted (ToFrame): the same from the request's counts, or from the frame.
+std::int64_t FrameBytes(const v1::FrameRequest& frame);
+std::int64_t FrameBytes(const Frame& frame);
 
 v1::SolvedFrame ToProto(int index, const Points& positions, const Faces& faces, const SolveSummary& summary,
                         bool with_normals, const std::string& served_by);

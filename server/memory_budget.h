@@ -1,9 +1,12 @@
-// One memory budget for what requests hold while they run: uploads in progress (the bytes received so far) and
-// open Solve and Interactive streams (an estimate of their colliders and solver state). Built characters have
+// One memory budget for what requests hold while they run: uploads in progress (the bytes received so far), Solve
+// requests (their bytes as received, then parsed, and their converted frames until written) and open Solve and
+// Interactive streams (their colliders and each Solver, counted from the factor size the rig's analysis knows,
+// Solver::bytes). Built characters have
 // their own budget in the store (--memory-budget-mb). A request that would go over is refused with
 // RESOURCE_EXHAUSTED instead of the server growing until the kernel kills it.
 #pragma once
 
+#include <atomic>
 #include <cstdint>
 #include <mutex>
 
@@ -23,21 +26,26 @@ class MemoryBudget {
   std::int64_t used_ = 0;
 };
 
-// What one request holds of the budget; released when it goes. Grow throws LimitError (RESOURCE_EXHAUSTED).
+// What one request holds of the budget; released when it goes. Grow throws LimitError (RESOURCE_EXHAUSTED,
+// saying how many bytes were asked and how many are free). Safe to use from several threads.
 class Reservation {
  public:
   explicit Reservation(MemoryBudget* budget) : budget_(budget) {}  // null: nothing is counted
   ~Reservation() {
-    if (budget_) budget_->Release(bytes_);
+    if (budget_) budget_->Release(bytes_.load());
   }
   Reservation(const Reservation&) = delete;
   Reservation& operator=(const Reservation&) = delete;
   void Grow(std::int64_t bytes);
-  std::int64_t bytes() const { return bytes_; }
+  // Grow without throwing: false (and nothing reserved) when the budget has no room.
+  bool TryGrow(std::int64_t bytes);
+  // Gives back part of what was reserved (memory the request no longer holds), at most all of it.
+  void Shrink(std::int64_t bytes);
+  std::int64_t bytes() const { return bytes_.load(); }
 
  private:
   MemoryBudget* budget_;
-  std::int64_t bytes_ = 0;
+  std::atomic<std::int64_t> bytes_{0};
 };
 
 }  // namespace springblend::server

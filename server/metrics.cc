@@ -56,6 +56,11 @@ void Metrics::CountFrame(double solve_seconds, int newton_iterations, bool conve
 
 void Metrics::CountColliders(size_t converted) { colliders_.fetch_add(converted, std::memory_order_relaxed); }
 
+void Metrics::HoldSolvers(int solvers, std::int64_t bytes) {
+  solvers_.fetch_add(solvers, std::memory_order_relaxed);
+  solver_bytes_.fetch_add(bytes, std::memory_order_relaxed);
+}
+
 std::string Metrics::Render(const std::function<std::string()>& extra) const {
   std::string out = fmt::format(
       "# HELP springblend_build_info The running springblend version.\n# TYPE springblend_build_info gauge\n"
@@ -77,8 +82,13 @@ std::string Metrics::Render(const std::function<std::string()>& extra) const {
       "# HELP springblend_newton_iterations_total Newton iterations over all frames.\n"
       "# TYPE springblend_newton_iterations_total counter\nspringblend_newton_iterations_total {}\n"
       "# HELP springblend_colliders_converted_total Colliders converted for Solve requests and Interactive sessions.\n"
-      "# TYPE springblend_colliders_converted_total counter\nspringblend_colliders_converted_total {}\n",
-      frames_.load(), unconverged_frames_.load(), newton_iterations_.load(), colliders_.load());
+      "# TYPE springblend_colliders_converted_total counter\nspringblend_colliders_converted_total {}\n"
+      "# HELP springblend_solvers Solvers held by open Solve streams and Interactive sessions.\n"
+      "# TYPE springblend_solvers gauge\nspringblend_solvers {}\n"
+      "# HELP springblend_solver_memory_bytes Memory counted for those solvers (part of the request memory).\n"
+      "# TYPE springblend_solver_memory_bytes gauge\nspringblend_solver_memory_bytes {}\n",
+      frames_.load(), unconverged_frames_.load(), newton_iterations_.load(), colliders_.load(), solvers_.load(),
+      solver_bytes_.load());
   out += solve_seconds_.Render("springblend_solve_seconds", "Time to solve one frame.");
   if (extra) out += extra();
   return out;

@@ -38,6 +38,9 @@ class Metrics {
   // Colliders turned into solver obstacles (a mesh collider: parsed or copied, checked, its AABB tree built).
   // A stream converts its colliders once, not per frame.
   void CountColliders(size_t converted);
+  // Solvers held by open Solve streams and Interactive sessions, and the memory counted for them
+  // (Solver::BytesFor; part of the request memory): +1 and its bytes when one is made, -1 when it goes.
+  void HoldSolvers(int solvers, std::int64_t bytes);
 
   // Everything, in the exposition format; `extra` appends gauges read at scrape time.
   std::string Render(const std::function<std::string()>& extra) const;
@@ -46,6 +49,7 @@ class Metrics {
   mutable std::mutex mutex_;
   std::map<std::pair<std::string, std::string>, std::uint64_t> requests_;
   std::atomic<std::uint64_t> frames_{0}, unconverged_frames_{0}, newton_iterations_{0}, colliders_{0};
+  std::atomic<std::int64_t> solvers_{0}, solver_bytes_{0};
   Histogram solve_seconds_;
 };
 

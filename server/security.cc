@@ -3,10 +3,13 @@
 #include <grpcpp/security/server_credentials.h>
 #include <openssl/evp.h>
 
+#include <algorithm>
+#include <cctype>
 #include <fstream>
 #include <sstream>
 
 #include "springblend/error.h"
+#include "status.h"
 
 namespace springblend::server {
 namespace {
@@ -102,10 +105,13 @@ AuthVerdict TokenAuthenticator::Check(const std::multimap<grpc::string_ref, grpc
     return {Kind::kMissing, "this server needs a token: send the metadata header 'authorization: Bearer TOKEN'"};
   }
   const std::string value(header->second.data(), header->second.size());
-  constexpr std::string_view kBearer = "Bearer ";
-  if (value.compare(0, kBearer.size(), kBearer) != 0) {
-    return {Kind::kMissing, "the authorization header must read 'Bearer TOKEN'"};
-  }
+  // The scheme is case-insensitive (RFC 9110 section 11.1): bearer, BEARER and Bearer alike.
+  constexpr std::string_view kBearer = "bearer ";
+  const bool bearer = value.size() >= kBearer.size() &&
+                      std::equal(kBearer.begin(), kBearer.end(), value.begin(), [](char a, char b) {
+                        return a == std::tolower(static_cast<unsigned char>(b));
+                      });
+  if (!bearer) return {Kind::kMissing, "the authorization header must read 'Bearer TOKEN'"};
   const auto known = tokens_.find(Sha256(value.substr(kBearer.size())));
   if (known == tokens_.end()) return {Kind::kUnknown, "the token is not one this server accepts"};
   if (needed == Access::kWrite && known->second != Role::kFull) {
@@ -123,7 +129,12 @@ class ReflectionGuard final : public grpc::experimental::Interceptor {
   void Intercept(grpc::experimental::InterceptorBatchMethods* methods) override {
     if (methods->QueryInterceptionHookPoint(grpc::experimental::InterceptionHookPoints::POST_RECV_INITIAL_METADATA)) {
       const auto* metadata = methods->GetRecvInitialMetadata();
-      if (metadata == nullptr || !auth_.Check(*metadata, Access::kRead).allowed()) info_->server_context()->TryCancel();
+      // Refused with the verdict's status (UNAUTHENTICATED, PERMISSION_DENIED), as every other method is.
+      if (metadata == nullptr) {
+        CancelCall(info_->server_context(), ToStatus(AuthVerdict{AuthVerdict::Kind::kMissing, "no metadata"}));
+      } else if (const AuthVerdict verdict = auth_.Check(*metadata, Access::kRead); !verdict.allowed()) {
+        CancelCall(info_->server_context(), ToStatus(verdict));
+      }
     }
     methods->Proceed();
   }

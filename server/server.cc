@@ -253,10 +253,13 @@ std::string Server::MetricsText() const {
         "# TYPE springblend_queue_depth gauge\nspringblend_queue_depth {}\n"
         "# TYPE springblend_workers_busy gauge\nspringblend_workers_busy {}\n"
         "# TYPE springblend_workers gauge\nspringblend_workers {}\n"
-        "# TYPE springblend_request_memory_bytes gauge\nspringblend_request_memory_bytes {}\n",
+        "# TYPE springblend_request_memory_bytes gauge\nspringblend_request_memory_bytes {}\n"
+        "# TYPE springblend_request_memory_limit_bytes gauge\nspringblend_request_memory_limit_bytes {}\n"
+        "# TYPE springblend_cache_write_failures_total counter\nspringblend_cache_write_failures_total {}\n",
         s.store.hits, s.store.misses, s.store.evictions, s.store.rebuilds_from_disk, s.store.builds,
         s.store.corrupt_files, s.store.paths_loaded, s.store.upgraded_files, s.store.cancelled_builds, s.store.bytes,
-        s.store.characters, s.queue_depth, s.workers_busy, s.workers, s.request_memory_bytes);
+        s.store.characters, s.queue_depth, s.workers_busy, s.workers, s.request_memory_bytes,
+        state_->memory.limit(), s.store.write_failures);
   });
 }
 

@@ -90,6 +90,32 @@ grpc::ServerUnaryReactor* OnPool(grpc::CallbackServerContext* call, ServiceConte
   return reactor;
 }
 
+// The solvers a stream holds, in the memory budget (Solver::BytesFor each, reserved by the stream) and in the
+// metrics' gauges; given back when the stream goes.
+class SolverCharge {
+ public:
+  explicit SolverCharge(Metrics& metrics) : metrics_(metrics) {}
+  ~SolverCharge() { metrics_.HoldSolvers(-solvers_, -bytes_); }
+  SolverCharge(const SolverCharge&) = delete;
+  SolverCharge& operator=(const SolverCharge&) = delete;
+  // Reserves `count` solvers of `each` bytes in `memory` (at least `required`, the others as the budget has
+  // room); returns how many. Throws LimitError when not even the required ones fit.
+  int Reserve(Reservation& memory, std::int64_t each, int required, int count) {
+    memory.Grow(each * required);
+    int held = required;
+    while (held < count && memory.TryGrow(each)) ++held;
+    solvers_ += held;
+    bytes_ += each * held;
+    metrics_.HoldSolvers(held, each * held);
+    return held;
+  }
+
+ private:
+  Metrics& metrics_;
+  int solvers_ = 0;
+  std::int64_t bytes_ = 0;
+};
+
 grpc::Status StoppedStatus(const Watchdog::Handle& watch, const char* what) {
   if (const char* why = watch.expired()) return Cancelled(why);
   return Cancelled(what);
@@ -193,16 +219,28 @@ class UploadReactor final : public grpc::ServerReadReactor<grpc::ByteBuffer> {
 // most that many solved-or-solving frames exist at a time (a slow reader holds them, not more), and a worker
 // returns to the pool as soon as its frame is stored; the next frames are queued as writes complete. The
 // stream finishes only when no job of it is running any more. One that stops reading is cancelled by the
-// watchdog (--stall-seconds).
+// watchdog (--stall-seconds). The memory budget counts the parsed request until it is converted, each converted
+// frame until it is written, the colliders and the solvers (one per frame solved at once, as many as fit).
 class SolveReactor final : public grpc::ServerWriteReactor<grpc::ByteBuffer> {
  public:
-  SolveReactor(grpc::CallbackServerContext* call, ServiceContext& context, v1::SolveRequest request)
+  // `received` holds the request's bytes as gRPC received them: given back once the parsed request is counted.
+  SolveReactor(grpc::CallbackServerContext* call, ServiceContext& context, v1::SolveRequest request,
+               Reservation& received)
       : call_(call),
         context_(context),
         request_(std::move(request)),
         watch_(context.watchdog.Watch(call, false)),
-        memory_(&context.memory) {
+        memory_(&context.memory),
+        solvers_charge_(context.metrics) {
     std::unique_lock lock(mutex_);
+    try {
+      request_bytes_ = RequestBytes(request_);
+      memory_.Grow(request_bytes_);
+      received.Shrink(received.bytes());
+    } catch (const std::exception& e) {
+      Act(lock, Fail(ToStatus(e)));
+      return;
+    }
     running_ = 1;
     if (!context_.pool.TrySubmit([this] { Start(); })) {
       running_ = 0;
@@ -218,7 +256,10 @@ class SolveReactor final : public grpc::ServerWriteReactor<grpc::ByteBuffer> {
       Act(lock, Fail(StoppedStatus(*watch_, "the client cancelled the stream")));
       return;
     }
-    ++written_;
+    // Written: the frame's converted input is not needed any more.
+    Frame& done = job_.frames[written_++];
+    memory_.Shrink(FrameBytes(done));
+    done = Frame();
     const Action action = Schedule();
     Act(lock, action != Action::kNone ? action : WriteOrFinish());
   }
@@ -234,11 +275,20 @@ class SolveReactor final : public grpc::ServerWriteReactor<grpc::ByteBuffer> {
       CheckId(request_.character_id(), "character_id");
       entry_ = context_.store.Get(request_.character_id(), BuildStop(call_, context_));
       if (!entry_) throw StatusError(NotFound(request_.character_id()));
-      memory_.Grow(StreamBytes(request_.colliders(), *entry_->rig));
+      // The colliders and the converted frames, counted before they are made.
+      std::int64_t frames = 0;
+      for (const v1::FrameRequest& f : request_.frames()) frames += FrameBytes(f);
+      memory_.Grow(StreamBytes(request_.colliders()) + frames);
       job_ = ToSolveJob(request_, *entry_->rig, context_.limits, [this] { return call_->IsCancelled() || Expired(); });
+      // Converted: the parsed request is let go.
+      v1::SolveRequest().Swap(&request_);
+      memory_.Shrink(request_bytes_);
       colliders_ = std::move(job_.colliders);
       context_.metrics.CountColliders(colliders_.size());
-      in_flight_limit_ = std::max<size_t>(1, std::min<size_t>(context_.pool.threads(), job_.frames.size()));
+      // One solver per frame solved at once: one is needed, the others as the budget has room.
+      const int wanted = static_cast<int>(std::max<size_t>(1, std::min<size_t>(context_.pool.threads(), job_.frames.size())));
+      in_flight_limit_ = static_cast<size_t>(
+          solvers_charge_.Reserve(memory_, Solver::BytesFor(*entry_->rig, job_.options), 1, wanted));
     } catch (const StatusError& e) {
       std::unique_lock lock(mutex_);
       --running_;
@@ -382,6 +432,8 @@ class SolveReactor final : public grpc::ServerWriteReactor<grpc::ByteBuffer> {
   v1::SolveRequest request_;
   std::shared_ptr<Watchdog::Handle> watch_;
   Reservation memory_;
+  SolverCharge solvers_charge_;
+  std::int64_t request_bytes_ = 0;  // the parsed request, counted until converted
   std::shared_ptr<const CharacterStore::Entry> entry_;
   SolveJob job_;
   std::vector<Collider> colliders_;
@@ -409,7 +461,11 @@ class SolveReactor final : public grpc::ServerWriteReactor<grpc::ByteBuffer> {
 class InteractiveReactor final : public grpc::ServerBidiReactor<grpc::ByteBuffer, grpc::ByteBuffer> {
  public:
   InteractiveReactor(grpc::CallbackServerContext* call, ServiceContext& context)
-      : call_(call), context_(context), watch_(context.watchdog.Watch(call, true)), memory_(&context.memory) {
+      : call_(call),
+        context_(context),
+        watch_(context.watchdog.Watch(call, true)),
+        memory_(&context.memory),
+        solver_charge_(context.metrics) {
     StartRead(&bytes_);
   }
 
@@ -565,7 +621,7 @@ class InteractiveReactor final : public grpc::ServerBidiReactor<grpc::ByteBuffer
     if (!setup_requested_) {
       setup_requested_ = true;
       solving_ = true;
-      if (!context_.pool.TrySubmit([this] { RunSolve(); })) {
+      if (!context_.pool.TrySubmit([this, busy = Busy()] { RunSolve(); })) {
         solving_ = false;
         Clear();
         FinishLocked(lock, kQueueFull);
@@ -581,12 +637,20 @@ class InteractiveReactor final : public grpc::ServerBidiReactor<grpc::ByteBuffer
   // Queues one more job of the session, marking it running; false (the session ends) when the pool refuses.
   bool Submit(std::unique_lock<std::mutex>& lock, bool* running, void (InteractiveReactor::*job)()) {
     *running = true;
-    if (context_.pool.SubmitContinuation([this, job] { (this->*job)(); })) return true;
+    if (context_.pool.SubmitContinuation([this, job, busy = Busy()] { (this->*job)(); })) return true;
     *running = false;
     Clear();
     refused_ = kShuttingDown;
     FinishIfIdle(lock, kShuttingDown);
     return false;
+  }
+
+  // The session is busy (not idle, whatever --idle-seconds says) from a job's submission until its function
+  // goes, after the job's last act: the token holds the watchdog's handle, which outlives the reactor.
+  std::shared_ptr<void> Busy() {
+    std::shared_ptr<Watchdog::Handle> watch = watch_;
+    watch->Busy();
+    return std::shared_ptr<void>(nullptr, [watch](void*) { watch->Unbusy(); });
   }
 
   // Starts the next write, if none is in flight: the outbox's answer of the lower frame index first; an answer
@@ -675,7 +739,7 @@ class InteractiveReactor final : public grpc::ServerBidiReactor<grpc::ByteBuffer
     grpc::Status status;
     std::optional<Answer> answer;
     try {
-      const Frame frame = ToFrame(job.frame, *entry_->rig, colliders_, job.index, context_.limits);
+      const Frame frame = ToFrame(job.frame, *entry_->rig, colliders_, job.index);
       Points positions;
       // Stop when the session is cancelled, and, with previews (the client has something to show), when a
       // newer frame overtakes this one: its solve starts at once instead of after this one.
@@ -715,7 +779,7 @@ class InteractiveReactor final : public grpc::ServerBidiReactor<grpc::ByteBuffer
     std::optional<Answer> answer;
     try {
       const auto start = std::chrono::steady_clock::now();
-      const Frame frame = ToFrame(job.frame, *entry_->rig, colliders_, job.index, context_.limits);
+      const Frame frame = ToFrame(job.frame, *entry_->rig, colliders_, job.index);
       const Points positions = solver_->Start(frame.weights).topRows(entry_->rig->num_surface_vertices());
       CheckSolved(positions, job.index);
       SolveSummary summary;
@@ -740,8 +804,10 @@ class InteractiveReactor final : public grpc::ServerBidiReactor<grpc::ByteBuffer
       CheckId(start_.character_id(), "start.character_id");
       entry_ = context_.store.Get(start_.character_id(), BuildStop(call_, context_));
       if (!entry_) return NotFound(start_.character_id());
-      memory_.Grow(StreamBytes(start_.colliders(), *entry_->rig));
+      memory_.Grow(StreamBytes(start_.colliders()));
       ToOptions(start_.options(), &job_);
+      // The session's Solver, for as long as the session lives.
+      solver_charge_.Reserve(memory_, Solver::BytesFor(*entry_->rig, job_.options), 1, 1);
       std::vector<Collider> colliders =
           ToColliders(start_.colliders(), context_.limits, [this] { return call_->IsCancelled(); });
       colliders_ = colliders.size();
@@ -759,6 +825,7 @@ class InteractiveReactor final : public grpc::ServerBidiReactor<grpc::ByteBuffer
   ServiceContext& context_;
   std::shared_ptr<Watchdog::Handle> watch_;
   Reservation memory_;
+  SolverCharge solver_charge_;
   grpc::ByteBuffer bytes_;
   v1::InteractiveRequest incoming_;
   v1::InteractiveStart start_;
@@ -859,13 +926,25 @@ grpc::ServerWriteReactor<grpc::ByteBuffer>* SolveServiceImpl::Solve(grpc::Callba
                                                                     const grpc::ByteBuffer* in) {
   using Refuse = Refusal<grpc::ServerWriteReactor<grpc::ByteBuffer>>;
   if (auto refused = Refused(call, context_, "Solve", Access::kRead)) return new Refuse(*refused);
+  // The bytes gRPC received are counted until parsed (a request of pins parses to several times its size).
+  Reservation received(&context_.memory);
+  try {
+    received.Grow(static_cast<std::int64_t>(in->Length()));
+  } catch (const std::exception& e) {
+    const grpc::Status status = ToStatus(e);
+    context_.metrics.CountRequest("Solve", CodeName(status.error_code()));
+    return new Refuse(status);
+  }
   v1::SolveRequest request;
   if (!Parse(*in, &request)) {
     const grpc::Status status = Unparseable("SolveRequest");
     context_.metrics.CountRequest("Solve", CodeName(status.error_code()));
     return new Refuse(status);
   }
-  return new SolveReactor(call, context_, std::move(request));
+  // gRPC keeps the request's bytes for the whole call; parsed, they are not needed (the buffer is the call's,
+  // not const, and is only destroyed after this).
+  const_cast<grpc::ByteBuffer*>(in)->Clear();
+  return new SolveReactor(call, context_, std::move(request), received);
 }
 
 }  // namespace springblend::server

@@ -1,5 +1,7 @@
 #include "status.h"
 
+#include <grpc/grpc.h>
+
 #include "springblend/error.h"
 
 namespace springblend::server {
@@ -40,6 +42,12 @@ grpc::Status BadMessage(const std::string& what) { return {grpc::StatusCode::INV
 grpc::Status Cancelled(const std::string& why) { return {grpc::StatusCode::CANCELLED, why}; }
 
 grpc::Status DeadlineExceeded(const std::string& what) { return {grpc::StatusCode::DEADLINE_EXCEEDED, what}; }
+
+void CancelCall(grpc::ServerContextBase* call, const grpc::Status& status) {
+  // What TryCancel does (no interceptor of ours watches cancellations), with our status and message.
+  grpc_call_cancel_with_status(call->c_call(), static_cast<grpc_status_code>(status.error_code()),
+                               status.error_message().c_str(), nullptr);
+}
 
 const char* CodeName(grpc::StatusCode code) {
   switch (code) {

@@ -1,6 +1,7 @@
 // The one place that maps springblend's errors onto gRPC status codes.
 #pragma once
 
+#include <grpcpp/server_context.h>
 #include <grpcpp/support/status.h>
 
 #include <exception>
@@ -37,6 +38,9 @@ grpc::Status Unparseable(const std::string& message);   // INVALID_ARGUMENT: byt
 grpc::Status BadMessage(const std::string& what);       // INVALID_ARGUMENT: a message out of place
 grpc::Status Cancelled(const std::string& why);         // CANCELLED: by the client, or the watchdog
 grpc::Status DeadlineExceeded(const std::string& what);  // DEADLINE_EXCEEDED
+// Cancels a call with this status, which its client then sees (gRPC's TryCancel sends a bare "Cancelled on the
+// server side"): for the watchdog's reasons and refusals made before a handler runs (reflection's token check).
+void CancelCall(grpc::ServerContextBase* call, const grpc::Status& status);
 // The code's name, for metrics labels.
 const char* CodeName(grpc::StatusCode code);
 

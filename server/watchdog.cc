@@ -1,5 +1,7 @@
 #include "watchdog.h"
 
+#include "status.h"
+
 namespace springblend::server {
 
 std::int64_t Watchdog::Handle::Now() {
@@ -10,6 +12,18 @@ std::int64_t Watchdog::Handle::Now() {
 void Watchdog::Handle::Done() {
   std::lock_guard lock(mutex_);
   done_ = true;
+}
+
+const char* Watchdog::Handle::Overdue(std::int64_t now, const StreamTimeouts& timeouts) const {
+  const std::int64_t waiting = waiting_since_.load(std::memory_order_relaxed);
+  if (waiting != 0 && timeouts.stall.count() > 0 && now - waiting > std::chrono::nanoseconds(timeouts.stall).count()) {
+    return "the stream stalled: the client neither read nor sent for longer than --stall-seconds";
+  }
+  if (idle_.count() > 0 && busy_.load(std::memory_order_relaxed) == 0 &&
+      now - last_activity_.load(std::memory_order_relaxed) > std::chrono::nanoseconds(idle_).count()) {
+    return "the Interactive session was idle for longer than --idle-seconds";
+  }
+  return nullptr;
 }
 
 Watchdog::Watchdog(StreamTimeouts timeouts) : timeouts_(timeouts), thread_([this] { Run(); }) {}
@@ -41,20 +55,12 @@ void Watchdog::Run() {
     lock.unlock();
     const std::int64_t now = Handle::Now();
     for (const auto& h : handles) {
-      const std::int64_t waiting = h->waiting_since_.load(std::memory_order_relaxed);
-      const char* why = nullptr;
-      if (waiting != 0 && timeouts_.stall.count() > 0 &&
-          now - waiting > std::chrono::nanoseconds(timeouts_.stall).count()) {
-        why = "the stream stalled: the client neither read nor sent for longer than --stall-seconds";
-      } else if (h->idle_.count() > 0 &&
-                 now - h->last_activity_.load(std::memory_order_relaxed) > std::chrono::nanoseconds(h->idle_).count()) {
-        why = "the Interactive session was idle for longer than --idle-seconds";
-      }
+      const char* why = h->Overdue(now, timeouts_);
       if (why == nullptr || h->expired_.load() != nullptr) continue;
       std::lock_guard call_lock(h->mutex_);
       if (h->done_) continue;
       h->expired_.store(why);
-      h->call_->TryCancel();
+      CancelCall(h->call_, Cancelled(why));
     }
     lock.lock();
     std::erase_if(handles_, [](const std::shared_ptr<Handle>& h) {

@@ -151,7 +151,7 @@ class BadInputTest : public ::testing::Test {
     auto collider = [&](std::string name, std::function<void(v1::Collider&)> shape, std::string message) {
       solve("collider " + name, [shape](v1::SolveRequest& r) { shape(*r.add_colliders()); },
             StatusCode::INVALID_ARGUMENT, message);
-      cases.back().field = "colliders[0]: ";
+      cases.back().field = "colliders[0]";  // named once: "colliders[0]: ..." or "colliders[0].mesh_obj: ..."
     };
     auto interactive = [&](std::string name, std::vector<v1::InteractiveRequest> messages, StatusCode code,
                            std::string message) {
@@ -232,7 +232,7 @@ class BadInputTest : public ::testing::Test {
       production(u);
       u.header.mutable_targets(0)->add_inbetween_weights(1.5);
       u.shapes.push_back(u.shapes[1]);
-    }, kInvalid, "inbetweens[0].weight");
+    }, kInvalid, "header.targets[0] (target 'poses-2_cube-1'): inbetween_weights[0] = 1.5 is outside (0, 1)");
     upload("a combination of an unknown target", [&](Upload& u) {
       production(u);
       u.header.mutable_targets(1)->add_combination(u.header.target_names(0));
