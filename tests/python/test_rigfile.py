@@ -144,7 +144,7 @@ class RigUploadTest(unittest.TestCase):
         with self.assertRaises(springblend.SpringblendError) as caught:
             self.client.upload_rig(rig)
         self.assertEqual(caught.exception.code, grpc.StatusCode.INVALID_ARGUMENT)
-        for part in [RIG + ": ", "target 'bend'", "inbetweens[0].weight"]:
+        for part in [RIG + ": ", "target 'bend'", "inbetween_weights[0] = 1.5 is outside (0, 1)"]:
             self.assertIn(part, caught.exception.message)
 
     def test_frames_equal_the_clis_local_blend(self):
