@@ -28,6 +28,7 @@
 #include "springblend/error.h"
 #include "springblend/mesh.h"
 #include "springblend/rig.h"
+#include "springblend/runtime.h"
 #include "springblend/solve.h"
 
 namespace springblend::bench {
@@ -98,18 +99,30 @@ struct Settings {
   int frames = 17;
   int targets_measured = 2;  // frames are measured on the first this many targets of a row
   bool reference = true;
+  RigOptions rig;  // the paths' options (--path-*)
 };
+
+// The row's targets, each named after its mesh.
+std::vector<TargetSpec> TargetsOf(const RowSpec& spec) {
+  std::vector<TargetSpec> targets;
+  for (const auto& t : spec.targets) {
+    TargetSpec target;
+    target.mesh = LoadMesh((spec.dir / t).string());
+    target.name = target.mesh.name;
+    targets.push_back(std::move(target));
+  }
+  return targets;
+}
 
 json RunRow(const RowSpec& spec, const Settings& settings) {
   json row;
   row["row"] = spec.name;
   TriangleMesh rest = LoadMesh((spec.dir / spec.rest).string());
-  std::vector<TriangleMesh> targets;
-  for (const auto& t : spec.targets) targets.push_back(LoadMesh((spec.dir / t).string()));
+  std::vector<TargetSpec> targets = TargetsOf(spec);
   malloc_trim(0);
   const auto before = ResidentMb();
   const auto start = Clock::now();
-  const std::shared_ptr<const Rig> rig = Rig::Build(std::move(rest), std::move(targets));
+  const std::shared_ptr<const Rig> rig = Rig::Build(std::move(rest), std::move(targets), settings.rig);
   row["build_ms"] = MsSince(start);
   malloc_trim(0);
   const auto after = ResidentMb();
@@ -134,17 +147,11 @@ json RunRow(const RowSpec& spec, const Settings& settings) {
     // A restart: the same meshes built again with the saved paths, and its first frame.
     const std::string saved = rig->SavePrecomputed();
     TriangleMesh rest2 = LoadMesh((spec.dir / spec.rest).string());
-    std::vector<TargetSpec> specs;
-    for (const auto& t : spec.targets) {
-      TargetSpec target;
-      target.mesh = LoadMesh((spec.dir / t).string());
-      target.name = target.mesh.name;
-      specs.push_back(std::move(target));
-    }
+    std::vector<TargetSpec> specs = TargetsOf(spec);
     RigBuildControl control;
     control.precomputed = &saved;
     const auto reload_start = Clock::now();
-    const auto reloaded = Rig::Build(std::move(rest2), std::move(specs), {}, control);
+    const auto reloaded = Rig::Build(std::move(rest2), std::move(specs), settings.rig, control);
     row["reload_ms"] = MsSince(reload_start);
     row["reload_paths_loaded"] = reloaded->summary().paths_loaded;
     Solver first(reloaded);
@@ -253,6 +260,7 @@ std::string Table(const json& rows) {
 }  // namespace springblend::bench
 
 int main(int argc, char** argv) {
+  springblend::ConfigureNumericalThreads(argv);  // one thread per numerical library: the paths run in parallel
   using namespace springblend::bench;
   Settings settings;
   std::string rows;
@@ -264,6 +272,11 @@ int main(int argc, char** argv) {
   app.add_option("--shared", settings.shared, "the shared meshes (default: <repo>/../shared/meshes)");
   app.add_option("--out", settings.out, "output directory");
   app.add_flag("!--no-reference", settings.reference, "skip the tight reference (no accuracy column)");
+  app.add_option("--path-intervals", settings.rig.path_intervals, "continuation steps per unit of weight")
+      ->check(CLI::Range(1, 256));
+  app.add_option("--path-max-samples", settings.rig.path_max_samples, "samples kept per target")
+      ->check(CLI::Range(4, 1024));
+  app.add_option("--path-tolerance", settings.rig.path_tolerance, "certified midpoint error, of the diagonal");
   CLI11_PARSE(app, argc, argv);
   if (settings.shared.empty()) settings.shared = settings.repo / ".." / "shared" / "meshes";
   if (!rows.empty()) {

@@ -74,7 +74,7 @@ void RigOptions::Validate() const {
   in_range(radius_edge_ratio, 1.01, 100.0, "radius_edge_ratio");
   in_range(tetgen_timeout_seconds, 0.001, 86400.0, "tetgen_timeout_seconds");
   in_range(anchor_size, 3, 1000, "anchor_size");
-  in_range(path_intervals, 1, 64, "path_intervals");
+  in_range(path_intervals, 1, 256, "path_intervals");
   in_range(path_extension, 0.0, 2.0, "path_extension");
   if (!(path_tolerance > 0.0 && path_tolerance <= 0.1)) {
     throw Error(ErrorCode::kInvalidInput,

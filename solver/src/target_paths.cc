@@ -9,11 +9,11 @@
 #include <cmath>
 #include <cstring>
 #include <limits>
+#include <deque>
 #include <mutex>
 
 #include "frame_conditions.h"
 #include "minimizer.h"
-#include "predictor.h"
 #include "rig_internals.h"
 #include "rigid.h"
 #include "springblend/error.h"
@@ -30,6 +30,9 @@ constexpr int kCheckIterations = 6;
 constexpr double kJump = 1e-3;
 constexpr std::uint8_t kUnchecked = 255;
 constexpr std::uint8_t kSwitch = 2;
+constexpr std::uint8_t kFold = 3;
+// Solved steps at multiples of 1 / kKeptGrid are always kept.
+constexpr double kKeptGrid = 8.0;
 constexpr char kPathsMagic[8] = {'S', 'B', 'P', 'A', 'T', 'H', '0', '2'};
 
 double Elapsed(std::chrono::steady_clock::time_point since) {
@@ -73,13 +76,16 @@ struct Stencil {
   }
 };
 
+// An interval between two branches (a switch, a fold): no tangent carries across it.
+bool Broken(std::uint8_t kind) { return kind == kSwitch || kind == kFold; }
+
 // Whether sample k's tangent may use samples on both sides: not at a break (an in-between's weight, where the
 // path has a kink), not next to the switch between branches, not at either end.
 bool Smooth(const TargetPath& path, int k) {
   const int n = path.samples();
   if (k <= 0 || k >= n - 1) return false;
   if (!path.breaks.empty() && path.breaks[k] != 0) return false;
-  return path.certified[k - 1] != kSwitch && path.certified[k] != kSwitch;
+  return !Broken(path.certified[k - 1]) && !Broken(path.certified[k]);
 }
 
 // Tangent at sample k for interval i (k is i or i + 1) as sample weights.
@@ -96,7 +102,7 @@ void AddTangent(const TargetPath& path, int i, int k, double scale, Stencil* ste
     const int far = forward ? k + 2 : k - 2;
     const int near = forward ? k + 1 : k - 1;
     const int middle_interval = forward ? k + 1 : k - 2;
-    const bool three = far >= 0 && far < n && path.certified[middle_interval] != kSwitch &&
+    const bool three = far >= 0 && far < n && !Broken(path.certified[middle_interval]) &&
                        (path.breaks.empty() || path.breaks[near] == 0);
     if (!three) {
       const double h = a[near] - a[k];
@@ -125,7 +131,7 @@ Stencil StencilAt(const TargetPath& path, double alpha) {
   const int i = static_cast<int>(std::upper_bound(a.begin(), a.end(), alpha) - a.begin()) - 1;
   const double h = a[i + 1] - a[i];
   const double s = (alpha - a[i]) / h;
-  if (path.certified[i] == kSwitch) {  // between two branches: no tangent carries across
+  if (Broken(path.certified[i])) {  // between two branches: no tangent carries across
     stencil.Add(i, 1.0 - s);
     stencil.Add(i + 1, s);
     return stencil;
@@ -143,6 +149,51 @@ struct Sample {
   Eigen::MatrixXf correction;  // anchor's frame
   double energy = 0.0;         // infinite when a tentative solve failed
   bool converged = false;
+  bool jumped = false;         // its solve went over a fold: far from a start extrapolated along the branch
+  bool fold_before = false;    // (assembled path) the interval below it is a fold
+};
+
+// The last samples of the branch a sweep follows, newest first: the polynomial through them, in the
+// corrections (which vary smoothly where the linear blend carries most of the motion), predicts the next.
+class Continuation {
+ public:
+  static constexpr size_t kOrder = 2;  // at most quadratic
+  void Reset() { past_.clear(); }
+  void Add(double alpha, const Points& correction) {
+    past_.push_front({alpha, correction});
+    if (past_.size() > kOrder + 1) past_.pop_back();
+  }
+  void Add(const Sample& sample) {
+    if (sample.converged) Add(sample.alpha, sample.correction.cast<double>());
+  }
+  // The predictions at alpha of orders 0 up to what the samples allow (none without samples). A sample
+  // joins while the spacing stays within a factor 2 of the step, as the continuation's halvings keep it.
+  std::vector<Points> Candidates(double alpha) const {
+    std::vector<Points> out;
+    size_t count = 0;
+    double last = alpha;
+    for (const auto& [a, c] : past_) {
+      const double spacing = std::abs(last - a);
+      if (count > 0 && (spacing == 0.0 || spacing > 2.5 * std::abs(alpha - past_[0].first))) break;
+      last = a;
+      ++count;
+    }
+    for (size_t order = 0; order < count; ++order) {
+      Points p = Points::Zero(past_[0].second.rows(), 3);
+      for (size_t i = 0; i <= order; ++i) {
+        double l = 1.0;
+        for (size_t j = 0; j <= order; ++j) {
+          if (j != i) l *= (alpha - past_[j].first) / (past_[i].first - past_[j].first);
+        }
+        p += l * past_[i].second;
+      }
+      out.push_back(std::move(p));
+    }
+    return out;
+  }
+
+ private:
+  std::deque<std::pair<double, Points>> past_;
 };
 
 // Samples are solved well below the path's tolerance, so that a midpoint check measures the interpolant's
@@ -162,9 +213,9 @@ class PathSolver {
       : rig_(rig),
         target_(target),
         stop_(stop),
+        sample_options_(SampleOptions(tolerance)),
         springs_(TopologyOf(rig)),
         linear_(rig.internals().pattern->matrix, *rig.internals().cholesky, rig.options().linear_solver),
-        sample_options_(SampleOptions(tolerance)),
         minimizer_(Minimizer::Create(sample_options_)),
         held_(3 * static_cast<size_t>(rig.num_vertices()), 0) {
     springs_.set_length_scale(rig.summary().mean_rest_length);
@@ -197,79 +248,87 @@ class PathSolver {
 
   // The sculpted shape of a knot (alpha 0, an in-between's weight, 1): a zero correction when it is in
   // balance (an unmasked shape: zero energy), else the equilibrium solved from it.
-  Sample End(double alpha, Predictor* predictor) {
+  Sample End(double alpha) {
     const Setup setup = SetUp(alpha);
-    const std::vector<double>& weights = setup.weights;
     const Points& linear = setup.linear;
-    const FrameConditions& conditions = setup.conditions;
     Eigen::VectorXd x(3 * linear.rows());
     for (Eigen::Index v = 0; v < linear.rows(); ++v) x.segment<3>(3 * v) = linear.row(v).transpose();
-    if (!HoldConditions(rig_, conditions, &x, &held_) ||
+    if (!HoldConditions(rig_, setup.conditions, &x, &held_) ||
         springs_.Evaluate(x, held_, Curvature{}, false) > SampleOptions(1.0).residual_tolerance) {
       const Eigen::MatrixXd zero = Eigen::MatrixXd::Zero(rig_.num_vertices(), 3);
-      return Solve(alpha, predictor, &zero);
+      return Solve(alpha, nullptr, &zero);
     }
-    if (predictor != nullptr) predictor->Add(linear, conditions.motion, weights, true);
     return {alpha, Eigen::MatrixXf::Zero(rig_.num_vertices(), 3), 0.0, true};
   }
 
   int solves = 0;  // equilibria solved (tentative ones that failed not counted)
   int newton_iterations = 0;
 
-  // Starts a predictor from a solved sample.
-  void Anchor(const Sample& sample, Predictor* predictor) const {
-    const std::vector<double> weights = Weights(sample.alpha);
-    const std::vector<double> shape_weights = rig_.ShapeWeights(weights);
-    const Points linear = LinearBlendShapes(rig_, shape_weights);
-    const std::optional<AnchorMotion> motion = ConditionsOf(rig_, shape_weights, linear, {}).motion;
-    Points correction = sample.correction.cast<double>();
-    if (motion) correction = correction * motion->rotation.toRotationMatrix().transpose();
-    predictor->Add(linear + correction, motion, weights, sample.converged);
-  }
-
   // Solves alpha * target coming from `from` (the previous sample): where the continuation step is too long
   // for Newton to converge, it is halved (up to three times) and the path followed through the midpoints,
   // which are kept as samples too (in *out, ascending along the way).
-  void Refined(double from, double alpha, Predictor& predictor, std::vector<Sample>* out, int depth = 0) {
-    Predictor before = predictor;
-    Sample sample = Solve(alpha, &predictor, nullptr, depth < kMaxHalvings);
+  void Refined(double from, double alpha, Continuation& continuation, std::vector<Sample>* out, int depth = 0) {
+    Continuation before = continuation;
+    Sample sample = Solve(alpha, &continuation, nullptr, depth < kMaxHalvings);
     if (std::isfinite(sample.energy) || depth >= kMaxHalvings) {
       out->push_back(std::move(sample));
       return;
     }
-    predictor = std::move(before);
+    continuation = std::move(before);
     const double middle = 0.5 * (from + alpha);
-    Refined(from, middle, predictor, out, depth + 1);
-    Refined(middle, alpha, predictor, out, depth + 1);
+    Refined(from, middle, continuation, out, depth + 1);
+    Refined(middle, alpha, continuation, out, depth + 1);
   }
 
   // Solves the target at alpha from the predictor's start, or from `correction` (anchor's frame) when given.
   // A tentative solve that fails is not counted.
   // max_iterations > 0 caps the Newton iterations (a midpoint check: an interpolant Newton does not finish
   // from in a few iterations is not in its equilibrium's basin, whatever that equilibrium is).
-  Sample Solve(double alpha, Predictor* predictor, const Eigen::MatrixXd* correction, bool tentative = false,
+  Sample Solve(double alpha, Continuation* continuation, const Eigen::MatrixXd* correction, bool tentative = false,
                int max_iterations = 0) {
     if (stop_ != nullptr && *stop_ && (*stop_)()) {
       throw Error(ErrorCode::kCancelled, "the rig build was cancelled");
     }
     const int n = rig_.num_vertices();
     const Setup setup = SetUp(alpha);
-    const std::vector<double>& weights = setup.weights;
     const Points& linear = setup.linear;
     const FrameConditions& conditions = setup.conditions;
+    // The start: the given correction, else the continuation's prediction with the least energy (where the
+    // path bends sharply a higher order can overshoot).
     Eigen::VectorXd x;
-    if (correction != nullptr) {
-      Eigen::MatrixXd world = *correction;
+    size_t predictions = 0;
+    bool jumped = false;
+    Points extrapolated, last;  // the highest-order prediction and the last sample (anchor's frame)
+    const auto start_from = [&](const auto& c, Eigen::VectorXd* out) {
+      Eigen::MatrixXd world = c;
       if (conditions.motion) world = world * conditions.motion->rotation.toRotationMatrix().transpose();
-      x.resize(3 * n);
-      for (int v = 0; v < n; ++v) x.segment<3>(3 * v) = (linear.row(v) + world.row(v)).transpose();
+      out->resize(3 * n);
+      for (int v = 0; v < n; ++v) out->segment<3>(3 * v) = (linear.row(v) + world.row(v)).transpose();
+    };
+    if (correction != nullptr) {
+      start_from(*correction, &x);
     } else {
-      predictor->Predict(linear, conditions.motion, rig_.anchor_centroid(), weights, conditions.held, true,
-                         [&](const Eigen::VectorXd& y) { return springs_.Energy(y); }, &x);
+      double best = std::numeric_limits<double>::infinity();
+      Eigen::VectorXd trial;
+      const std::vector<Points> candidates = continuation->Candidates(alpha);
+      predictions = candidates.size();
+      if (predictions > 1) {
+        extrapolated = candidates.back();
+        last = candidates.front();
+      }
+      for (const Points& c : candidates) {
+        start_from(c, &trial);
+        HoldConditions(rig_, conditions, &trial, &held_);
+        const double e = springs_.Energy(trial);
+        if (!(e >= best)) {
+          best = e;
+          x.swap(trial);
+        }
+      }
+      if (x.size() == 0) start_from(Eigen::MatrixXd::Zero(n, 3), &x);
     }
     MinimizerSummary summary;
     const bool held = HoldConditions(rig_, conditions, &x, &held_);
-    const Eigen::VectorXd start = x;
     if (held) {
       MinimizerProblem problem;
       problem.springs = &springs_;
@@ -303,18 +362,24 @@ class PathSolver {
     }
     const bool finite = solved.allFinite();
     if (!finite) solved = linear;  // a broken sample only costs its frames a worse start
-    if (predictor != nullptr) {
-      // A solve that moved far from its start went over a fold to another branch: what came before it does
-      // not predict what comes after.
-      double moved = 0.0;
-      for (int v = 0; v < n; ++v) moved = std::max(moved, (x.segment<3>(3 * v) - start.segment<3>(3 * v)).squaredNorm());
-      if (std::sqrt(moved) > kJump * rig_.summary().bounding_box_diagonal) predictor->Reset();
-      predictor->Add(solved, conditions.motion, weights, converged && finite);
-    }
     Points corrected = solved - linear;
     if (conditions.motion) corrected = corrected * conditions.motion->rotation.toRotationMatrix();  // R^T per row
+    if (continuation != nullptr) {
+      // A solve whose correction (aligned, for a floating rig: its gauge says nothing) landed far from the one
+      // extrapolated along the branch, by more than half of what the step changed, went over a fold to
+      // another branch: what came before it does not predict what comes after. (On a smooth branch the
+      // extrapolation's error is of higher order in the step than the change.)
+      if (predictions > 1) {
+        const auto largest = [](const Points& d) { return std::sqrt(d.rowwise().squaredNorm().maxCoeff()); };
+        const double missed = largest(corrected - extrapolated);
+        jumped = missed > kJump * rig_.summary().bounding_box_diagonal && missed > 0.5 * largest(corrected - last);
+      }
+      if (jumped) continuation->Reset();
+      if (converged && finite) continuation->Add(alpha, corrected);
+    }
     return {alpha, corrected.cast<float>(),
-            converged && finite ? summary.energy : std::numeric_limits<double>::infinity(), converged && finite};
+            converged && finite ? summary.energy : std::numeric_limits<double>::infinity(), converged && finite,
+            jumped};
   }
 
  private:
@@ -336,8 +401,9 @@ double Distance(const Eigen::MatrixXd& a, const Eigen::MatrixXf& b) {
 void BuildPath(const Rig& rig, int target, const TargetPathsOptions& options, TargetPath* path) {
   const auto start = std::chrono::steady_clock::now();
   // Two chains of solves, each with its own solver (whose kept factorization carries from one solve to the
-  // next): the sweeps inside [0, 1] on one, the extensions on the other; the midpoint checks split between
-  // them. Each chain is sequential and its work fixed, so the paths do not depend on the threads.
+  // next and preconditions the next solve while it stays close): the sweeps inside [0, 1] on one, the
+  // extensions on the other; the midpoint checks split between them. Each chain is sequential and its work
+  // fixed, so the paths do not depend on the threads.
   PathSolver solver(rig, target, options.tolerance, options.stop);
   PathSolver side(rig, target, options.tolerance, options.stop);
   const double diagonal = rig.summary().bounding_box_diagonal;
@@ -347,98 +413,148 @@ void BuildPath(const Rig& rig, int target, const TargetPathsOptions& options, Ta
   std::vector<double> knots = {0.0};
   for (const auto& knot : rig.internals().controls.targets[target]) knots.push_back(knot.weight);
   std::vector<double> kinks(knots.begin() + 1, knots.end() - 1);  // the in-betweens: the path may bend there
+  // A chain solved downwards: sample j was solved coming from sample j - 1 (or the knot above, `top`), so a
+  // fold found by sample j lies below its predecessor.
+  const auto mark_descending = [](std::vector<Sample>& chain, Sample* top) {
+    for (size_t j = 0; j < chain.size(); ++j) {
+      if (chain[j].jumped) (j == 0 ? *top : chain[j - 1]).fold_before = true;
+    }
+  };
   // Per segment between two knots: the sweep up from the lower knot; where it does not end on the upper
   // knot's shape, the sweep down from that too, and one switch from the up branch to the down branch at the
-  // first base sample where the down branch's energy is lower.
+  // first step where the down branch's energy is lower.
   std::vector<Sample> inside;
   std::vector<int> switches;  // in `inside`: intervals from an up branch to a down branch
-  const Sample rest = solver.End(0.0, nullptr);
-  const Sample full = solver.End(1.0, nullptr);
+  Sample rest = solver.End(0.0);
+  const Sample full = solver.End(1.0);
   const auto sweep_inside = [&] {
-  Sample lower = rest;
-  for (size_t j = 0; j + 1 < knots.size(); ++j) {
-    const double a = knots[j], b = knots[j + 1];
-    const int steps = std::max(1, static_cast<int>(std::ceil((b - a) / h - 1e-9)));
-    std::vector<double> grid;
-    for (int k = 0; k <= steps; ++k) grid.push_back(k == steps ? b : a + (b - a) * k / steps);
-    std::vector<Sample> up;
-    Predictor from_lower;
-    solver.Anchor(lower, &from_lower);
-    up.push_back(std::move(lower));
-    for (size_t k = 1; k < grid.size(); ++k) solver.Refined(grid[k - 1], grid[k], from_lower, &up);
-    Sample upper = j + 2 == knots.size() ? full : solver.End(b, nullptr);
-    if (up.back().converged && Distance(upper.correction.cast<double>(), up.back().correction) <=
-                                   options.tolerance * diagonal) {
-      up.pop_back();
-      inside.insert(inside.end(), std::make_move_iterator(up.begin()), std::make_move_iterator(up.end()));
+    Sample lower = rest;
+    for (size_t j = 0; j + 1 < knots.size(); ++j) {
+      const double a = knots[j], b = knots[j + 1];
+      const int steps = std::max(1, static_cast<int>(std::ceil((b - a) / h - 1e-9)));
+      std::vector<double> grid;
+      for (int k = 0; k <= steps; ++k) grid.push_back(k == steps ? b : a + (b - a) * k / steps);
+      std::vector<Sample> up;
+      Continuation from_lower;
+      from_lower.Add(lower);
+      up.push_back(std::move(lower));
+      for (size_t k = 1; k < grid.size(); ++k) solver.Refined(grid[k - 1], grid[k], from_lower, &up);
+      for (size_t k = 1; k < up.size(); ++k) up[k].fold_before = up[k].jumped;
+      Sample upper = j + 2 == knots.size() ? full : solver.End(b);
+      if (up.back().converged &&
+          Distance(upper.correction.cast<double>(), up.back().correction) <= options.tolerance * diagonal) {
+        upper.fold_before = up.back().fold_before;
+        up.pop_back();
+        inside.insert(inside.end(), std::make_move_iterator(up.begin()), std::make_move_iterator(up.end()));
+        lower = std::move(upper);
+        continue;
+      }
+      std::vector<Sample> down;  // descending
+      Continuation from_upper;
+      from_upper.Add(upper);
+      for (size_t k = grid.size() - 1; k-- > 1;) solver.Refined(grid[k + 1], grid[k], from_upper, &down);
+      mark_descending(down, &upper);
+      std::reverse(down.begin(), down.end());  // ascending, above a
+      const auto energy_at = [](const std::vector<Sample>& samples, double alpha) {
+        for (const Sample& s : samples) {
+          if (s.alpha == alpha) return s.energy;
+        }
+        return std::numeric_limits<double>::infinity();
+      };
+      double switch_at = b;
+      for (size_t k = 1; k + 1 < grid.size(); ++k) {
+        if (energy_at(down, grid[k]) < energy_at(up, grid[k])) {
+          switch_at = grid[k];
+          break;
+        }
+      }
+      for (Sample& s : up) {
+        if (s.alpha < switch_at) inside.push_back(std::move(s));
+      }
+      switches.push_back(static_cast<int>(inside.size()) - 1);
+      for (Sample& s : down) {
+        if (s.alpha >= switch_at) inside.push_back(std::move(s));
+      }
       lower = std::move(upper);
-      continue;
     }
-    std::vector<Sample> down;
-    Predictor from_upper;
-    solver.Anchor(upper, &from_upper);
-    for (size_t k = grid.size() - 1; k-- > 1;) {
-      std::vector<Sample> part;
-      solver.Refined(grid[k + 1], grid[k], from_upper, &part);
-      down.insert(down.end(), std::make_move_iterator(part.begin()), std::make_move_iterator(part.end()));
-    }
-    std::reverse(down.begin(), down.end());  // ascending, above a
-    const auto energy_at = [](const std::vector<Sample>& samples, double alpha) {
-      for (const Sample& s : samples) {
-        if (s.alpha == alpha) return s.energy;
-      }
-      return std::numeric_limits<double>::infinity();
-    };
-    double switch_at = b;
-    for (size_t k = 1; k + 1 < grid.size(); ++k) {
-      if (energy_at(down, grid[k]) < energy_at(up, grid[k])) {
-        switch_at = grid[k];
-        break;
-      }
-    }
-    for (Sample& s : up) {
-      if (s.alpha < switch_at) inside.push_back(std::move(s));
-    }
-    switches.push_back(static_cast<int>(inside.size()) - 1);
-    for (Sample& s : down) {
-      if (s.alpha >= switch_at) inside.push_back(std::move(s));
-    }
-    lower = std::move(upper);
-  }
-  inside.push_back(std::move(lower));  // the target
+    inside.push_back(std::move(lower));  // the target
   };
   // Beyond [0, 1]: continuation from the ends.
   const int beyond = static_cast<int>(std::ceil(options.extension * options.intervals - 1e-9));
-  std::vector<Sample> above, below;
+  std::vector<Sample> above, below;  // below: descending
+  Sample rest_mark;                  // a fold between the rest shape and the first sample below it
   const auto sweep_beyond = [&] {
     {
-      Predictor predictor;
-      side.Anchor(full, &predictor);
+      Continuation predictor;
+      predictor.Add(full);
       for (int k = 1; k <= beyond; ++k) side.Refined(1.0 + (k - 1) * h, 1.0 + k * h, predictor, &above);
+      for (Sample& s : above) s.fold_before = s.jumped;
     }
-    Predictor predictor;
-    side.Anchor(rest, &predictor);
+    Continuation predictor;
+    predictor.Add(rest);
     for (int k = 1; k <= beyond; ++k) side.Refined(-(k - 1) * h, -k * h, predictor, &below);
+    mark_descending(below, &rest_mark);
   };
   tbb::parallel_invoke(sweep_inside, sweep_beyond);
-  std::vector<Sample> samples(below.rbegin(), below.rend());
-  samples.insert(samples.end(), std::make_move_iterator(inside.begin()), std::make_move_iterator(inside.end()));
-  samples.insert(samples.end(), std::make_move_iterator(above.begin()), std::make_move_iterator(above.end()));
-  for (size_t i = 0; i < samples.size(); ++i) {
-    path->alphas.push_back(samples[i].alpha);
-    path->corrections.push_back(std::move(samples[i].correction));
-    if (!samples[i].converged) ++path->unconverged;
+  inside.front().fold_before = rest_mark.fold_before;
+  // The dense path: every sample the sweeps solved.
+  std::vector<Sample> dense(std::make_move_iterator(below.rbegin()), std::make_move_iterator(below.rend()));
+  const int first_inside = static_cast<int>(dense.size());
+  dense.insert(dense.end(), std::make_move_iterator(inside.begin()), std::make_move_iterator(inside.end()));
+  dense.insert(dense.end(), std::make_move_iterator(above.begin()), std::make_move_iterator(above.end()));
+  const int n_dense = static_cast<int>(dense.size());
+  for (const Sample& s : dense) {
+    if (!s.converged) ++path->unconverged;
   }
-  path->breaks.assign(path->alphas.size(), 0);
-  for (size_t i = 0; i < path->alphas.size(); ++i) {
-    for (double w : kinks) path->breaks[i] |= path->alphas[i] == w ? 1 : 0;
+  // Per dense interval: a switch between branches, a fold, or smooth.
+  std::vector<std::uint8_t> dense_kind(n_dense - 1, kUnchecked);
+  for (int i : switches) dense_kind[first_inside + i] = kSwitch;
+  for (int k = 1; k < n_dense; ++k) {
+    if (dense[k].fold_before && dense_kind[k - 1] != kSwitch) dense_kind[k - 1] = kFold;
   }
-  path->certified.assign(path->alphas.size() - 1, kUnchecked);
-  for (int i : switches) path->certified[below.size() + i] = kSwitch;
+  std::vector<std::uint8_t> dense_break(n_dense, 0);
+  for (int k = 0; k < n_dense; ++k) {
+    for (double w : kinks) dense_break[k] |= dense[k].alpha == w ? 1 : 0;
+  }
 
-  // Certify: check every interval's midpoint against an equilibrium solved from the interpolant there; split
-  // those that fail (down to 1/64 of the base step) and check again the intervals whose interpolant changed.
-  const double min_width = h / 64.0;
+  // The kept samples: at first the ends, the knots, both sides of every switch and fold (where the path is
+  // not smooth) and the steps on a grid of kKeptGrid per unit (so a frame at such a weight starts at its
+  // answer, whatever the tolerance); then, as long as an interval's interpolant misses a dense sample inside it by more than
+  // the tolerance, the dense sample nearest its midpoint joins (no solve needed). An interval with no dense
+  // sample inside is checked at its midpoint against an equilibrium solved there from the interpolant, and
+  // split by that equilibrium while the check fails and halving pays.
+  std::vector<int> dense_of;  // per kept sample: its dense index, or -1 for a midpoint solved by a check
+  {
+    // Priority 0: the ends and the knots; 1: both sides of switches and folds; 2: the grid. Lower priorities
+    // join while the cap allows.
+    std::vector<int> priority(n_dense, 3);
+    for (int k = 0; k < n_dense; ++k) {
+      const bool end = k == 0 || k == n_dense - 1 || dense_break[k] || dense[k].alpha == 0.0 || dense[k].alpha == 1.0;
+      const bool rough =
+          (k > 0 && dense_kind[k - 1] != kUnchecked) || (k + 1 < n_dense && dense_kind[k] != kUnchecked);
+      const bool grid = std::abs(dense[k].alpha * kKeptGrid - std::round(dense[k].alpha * kKeptGrid)) < 1e-9;
+      priority[k] = end ? 0 : rough ? 1 : grid ? 2 : 3;
+    }
+    int level = 0;
+    while (level < 2 && std::count_if(priority.begin(), priority.end(), [&](int p) { return p <= level + 1; }) <=
+                            options.max_samples) {
+      ++level;
+    }
+    for (int k = 0; k < n_dense; ++k) {
+      if (priority[k] <= level) dense_of.push_back(k);
+    }
+  }
+  for (int k : dense_of) {
+    path->alphas.push_back(dense[k].alpha);
+    path->corrections.push_back(dense[k].correction);
+    path->breaks.push_back(dense_break[k]);
+  }
+  for (size_t i = 0; i + 1 < dense_of.size(); ++i) {
+    const bool adjacent = dense_of[i + 1] == dense_of[i] + 1;
+    path->certified.push_back(adjacent ? dense_kind[dense_of[i]] : kUnchecked);
+  }
+
+  const double min_width = h / 8.0;
   std::vector<double> errors(path->certified.size(), 0.0);
   std::vector<double> parent_error(path->certified.size(), 0.0);  // the error of the interval split into this one
   for (;;) {
@@ -447,11 +563,36 @@ void BuildPath(const Rig& rig, int target, const TargetPathsOptions& options, Ta
       if (path->certified[i] == kUnchecked) unchecked.push_back(static_cast<int>(i));
     }
     if (unchecked.empty()) break;
-    // Each interval's check, the first half of them on one solver and the rest on the other.
+    // Each interval's check: against its inner dense samples, else (the first half of them on one solver and
+    // the rest on the other) a solve at its midpoint.
     std::vector<Sample> checks(unchecked.size());
+    std::vector<int> split_at(unchecked.size(), -1);  // the dense sample that would split it
     std::vector<double> check_errors(unchecked.size(), 0.0);
+    std::vector<size_t> to_solve;
+    for (size_t c = 0; c < unchecked.size(); ++c) {
+      const int i = unchecked[c];
+      const int p = dense_of[i], q = dense_of[i + 1];
+      if (p < 0 || q < 0 || q - p < 2) {
+        to_solve.push_back(c);
+        continue;
+      }
+      const double middle = 0.5 * (path->alphas[i] + path->alphas[i + 1]);
+      double error = 0.0, nearest = std::numeric_limits<double>::infinity();
+      Eigen::MatrixXd predicted;
+      for (int r = p + 1; r < q; ++r) {
+        EvaluatePath(*path, dense[r].alpha, &predicted);
+        error = std::max(error, dense[r].converged ? Distance(predicted, dense[r].correction) / diagonal
+                                                   : std::numeric_limits<double>::infinity());
+        if (std::abs(dense[r].alpha - middle) < nearest) {
+          nearest = std::abs(dense[r].alpha - middle);
+          split_at[c] = r;
+        }
+      }
+      check_errors[c] = error;
+    }
     const auto check = [&](PathSolver& on, size_t from, size_t to) {
-      for (size_t c = from; c < to; ++c) {
+      for (size_t t = from; t < to; ++t) {
+        const size_t c = to_solve[t];
         const int i = unchecked[c];
         const double a = path->alphas[i], b = path->alphas[i + 1];
         if (b - a <= min_width) continue;
@@ -462,61 +603,71 @@ void BuildPath(const Rig& rig, int target, const TargetPathsOptions& options, Ta
                                               : std::numeric_limits<double>::infinity();
       }
     };
-    const size_t half = unchecked.size() / 2;
-    tbb::parallel_invoke([&] { check(solver, 0, half); }, [&] { check(side, half, unchecked.size()); });
-    std::vector<Sample> added;
+    const size_t half = to_solve.size() / 2;
+    tbb::parallel_invoke([&] { check(solver, 0, half); }, [&] { check(side, half, to_solve.size()); });
     std::vector<int> split;
+    std::vector<Sample> added;
+    std::vector<int> added_dense;
     for (size_t c = 0; c < unchecked.size(); ++c) {
       const int i = unchecked[c];
       const double a = path->alphas[i], b = path->alphas[i + 1];
       const double error = check_errors[c];
+      const bool looked_up = split_at[c] >= 0;
       errors[i] = error;
-      if (b - a <= min_width) {
+      if (!looked_up && b - a <= min_width) {
         path->certified[i] = 0;
       } else if (error <= options.tolerance) {
         path->certified[i] = 1;
-      } else if (!std::isfinite(error) || (parent_error[i] > 0.0 && error > 0.25 * parent_error[i]) ||
-                 path->samples() + static_cast<int>(added.size()) >= options.max_samples) {
-        // Newton did not finish from the interpolant within a few iterations, or halving the interval did not
-        // bring the error down as a smooth path's would (by 8 to 16): the equilibria there are not one smooth
-        // branch (a fold, a kink, nearby minima), and more samples would not certify it; or the path has all
-        // the samples it may have. Frames there finish by a full solve
-        // when the local one fails.
+      } else if (path->samples() + static_cast<int>(added.size()) >= options.max_samples ||
+                 (!looked_up && (!std::isfinite(error) || (parent_error[i] > 0.0 && error > 0.25 * parent_error[i])))) {
+        // The path has all the samples it may have; or Newton did not finish from the interpolant within a
+        // few iterations, or halving the interval did not bring the error down as a smooth path's would (by
+        // 8 to 16): the equilibria there are not one smooth branch (a fold, a kink, nearby minima), and more
+        // samples would not certify it. Frames there finish by a full solve when the local one fails.
         path->certified[i] = 0;
       } else {
         split.push_back(i);
-        added.push_back(std::move(checks[c]));
+        if (looked_up) {
+          added.push_back(dense[split_at[c]]);
+          added_dense.push_back(split_at[c]);
+        } else {
+          added.push_back(std::move(checks[c]));
+          added_dense.push_back(-1);
+        }
       }
     }
     if (split.empty()) break;
-    // Insert the midpoints; the split intervals' halves and their neighbours (whose tangents changed) are
+    // Insert the new samples; the split intervals' halves and their neighbours (whose tangents changed) are
     // checked again.
     TargetPath next;
-    next.breaks.clear();
     std::vector<std::uint8_t> certified;
     std::vector<double> next_errors, next_parent;
+    std::vector<int> next_dense;
     size_t s = 0;
     for (size_t i = 0; i < path->alphas.size(); ++i) {
       next.alphas.push_back(path->alphas[i]);
       next.corrections.push_back(std::move(path->corrections[i]));
       next.breaks.push_back(path->breaks[i]);
+      next_dense.push_back(dense_of[i]);
       if (i + 1 == path->alphas.size()) break;
       if (s < split.size() && split[s] == static_cast<int>(i)) {
-        if (!added[s].converged) ++path->unconverged;
+        if (added_dense[s] < 0 && !added[s].converged) ++path->unconverged;
         next.alphas.push_back(added[s].alpha);
         next.corrections.push_back(std::move(added[s].correction));
         next.breaks.push_back(0);
-        certified.push_back(kUnchecked);
-        certified.push_back(kUnchecked);
-        next_errors.push_back(0.0);
-        next_errors.push_back(0.0);
-        next_parent.push_back(errors[i]);
-        next_parent.push_back(errors[i]);
+        next_dense.push_back(added_dense[s]);
+        for (int half_interval = 0; half_interval < 2; ++half_interval) {
+          certified.push_back(kUnchecked);
+          next_errors.push_back(0.0);
+          // Halving pays or not is judged for solved midpoints only (looked-up ones cost nothing).
+          next_parent.push_back(added_dense[s] < 0 ? errors[i] : 0.0);
+        }
         ++s;
       } else {
         const bool neighbour = std::binary_search(split.begin(), split.end(), static_cast<int>(i) - 1) ||
                                std::binary_search(split.begin(), split.end(), static_cast<int>(i) + 1);
-        certified.push_back(neighbour && path->certified[i] != kSwitch ? kUnchecked : path->certified[i]);
+        const std::uint8_t kind = path->certified[i];
+        certified.push_back(neighbour && kind != kSwitch && kind != kFold ? kUnchecked : kind);
         next_errors.push_back(errors[i]);
         next_parent.push_back(parent_error[i]);
       }
@@ -525,6 +676,7 @@ void BuildPath(const Rig& rig, int target, const TargetPathsOptions& options, Ta
     path->corrections = std::move(next.corrections);
     path->breaks = std::move(next.breaks);
     path->certified = std::move(certified);
+    dense_of = std::move(next_dense);
     errors = std::move(next_errors);
     parent_error = std::move(next_parent);
   }
@@ -541,7 +693,8 @@ void BuildPath(const Rig& rig, int target, const TargetPathsOptions& options, Ta
 }  // namespace
 
 int TargetPath::uncertified() const {
-  return static_cast<int>(std::count(certified.begin(), certified.end(), std::uint8_t{0}));
+  return static_cast<int>(std::count(certified.begin(), certified.end(), std::uint8_t{0}) +
+                          std::count(certified.begin(), certified.end(), kFold));
 }
 
 std::int64_t TargetPath::bytes() const {
@@ -714,7 +867,9 @@ std::optional<std::vector<TargetPath>> ParseTargetPaths(const std::string& bytes
       ok = in.GetBytes(c.data(), sizeof(float) * 3 * static_cast<size_t>(rows)) && c.allFinite();
       p.corrections.push_back(std::move(c));
     }
-    for (std::uint32_t k = 0; ok && k + 1 < samples; ++k) ok = std::isfinite(p.alphas[k]) && p.alphas[k] < p.alphas[k + 1];
+    for (std::uint32_t k = 0; ok && k + 1 < samples; ++k) {
+      ok = std::isfinite(p.alphas[k]) && p.alphas[k] < p.alphas[k + 1] && p.certified[k] <= kFold;
+    }
     if (!ok) {
       *why = "malformed samples";
       return std::nullopt;

@@ -4,14 +4,19 @@
 // frame) at adaptively chosen samples and interpolated by cubic Hermite splines.
 //
 // One branch per path, chosen deterministically:
-//  - the sweep up from the rest shape (continuation at the base step, halved where Newton does not converge);
+//  - the sweep up from the rest shape (continuation at `intervals` steps per unit, each step started from the
+//    polynomial through the branch's last corrections, halved where Newton does not converge);
 //  - where it does not end on the target, the sweep down from the target too, and one switch between them:
-//    the up branch below the first base sample where the down branch's energy is lower, the down branch from
-//    there on (so alpha 0 and 1 are the rest shape and the target exactly, and the choice is per interval);
-//  - beyond [0, 1], continuation from the nearer end.
-// Certified: every interval (but the switch between two branches) is split until the interpolant at its
-// midpoint is within `tolerance` of the diagonal of an equilibrium solved there from it (the check is made
-// against the final samples: an interval next to a new sample is checked again), up to a cap on samples.
+//    the up branch below the first step where the down branch's energy is lower, the down branch from there
+//    on (so alpha 0 and 1 are the rest shape and the target exactly, and the choice is per interval);
+//  - beyond [0, 1], continuation from the nearer end;
+//  - a step that lands far from its extrapolated start went over a fold: the path breaks there.
+// Certified, keeping only the samples it needs: of the solved steps, the ends, knots, both sides of switches
+// and folds and a grid of 8 per unit are kept; an interval whose interpolant misses a solved step inside it by
+// more than `tolerance` of the diagonal is split at the step nearest its midpoint; an interval with no step
+// inside is split until the interpolant at its midpoint is within `tolerance` of an equilibrium solved there
+// from it (checks are made against the final samples: an interval next to a new sample is checked again), up
+// to a cap on samples.
 #pragma once
 
 #include <Eigen/Core>
@@ -30,8 +35,8 @@ struct TargetPath {
   std::vector<double> alphas;                 // ascending sample weights of the target; 0 and 1 among them
   std::vector<Eigen::MatrixXf> corrections;   // per sample: #vertices by 3, in the anchor's frame
   std::vector<std::uint8_t> breaks;           // per sample: 1 at an in-between's weight (a kink: one-sided tangents)
-  // Per interval (alphas.size() - 1): 1 where the midpoint check passed, 0 where it did not within the cap,
-  // 2 for the interval that switches from the up branch to the down branch.
+  // Per interval (alphas.size() - 1): 1 where the check passed, 0 where it did not within the cap, 2 for the
+  // interval that switches from the up branch to the down branch, 3 for a fold (the sweep jumped branches).
   std::vector<std::uint8_t> certified;
   double max_error = 0.0;   // largest midpoint error over the certified intervals, of the diagonal
   double build_ms = 0.0;    // wall time of this path's build
@@ -40,12 +45,12 @@ struct TargetPath {
   int unconverged = 0;      // samples whose solve did not converge (kept as the best found)
   bool empty() const { return corrections.empty(); }
   int samples() const { return static_cast<int>(alphas.size()); }
-  int uncertified() const;  // intervals whose check did not pass (the branch switch not counted)
+  int uncertified() const;  // intervals whose check did not pass, and folds (the branch switch not counted)
   std::int64_t bytes() const;
 };
 
 struct TargetPathsOptions {
-  int intervals = 8;           // base samples per unit of alpha (the sweeps' continuation step)
+  int intervals = 32;          // continuation steps per unit of alpha
   double extension = 0.25;     // beyond [0, 1] on both sides
   double tolerance = 1e-6;     // midpoint error, of the bounding-box diagonal
   int max_samples = 64;        // per target

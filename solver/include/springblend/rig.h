@@ -83,12 +83,15 @@ struct RigOptions {
   // paper's sweep) at path_intervals steps per unit, one branch per target, and keep the physical corrections.
   // Every frame then starts from the linear blend plus each target's correction at its weight: a
   // single-target frame starts within path_tolerance of its answer and is finished where it is out of balance
-  // only, every frame starts close to its answer, and no frame depends on another. Certified: an interval is
-  // split until the interpolant at its midpoint is within path_tolerance (of the bounding-box diagonal) of an
-  // equilibrium solved there, up to path_max_samples per target. Run in parallel over the targets.
-  // Range: intervals [1, 64], extension [0, 2], tolerance (0, 0.1], max samples [4, 1024].
+  // only, every frame starts close to its answer, and no frame depends on another. Certified: of the solved
+  // steps, only those the interpolant needs are kept (an interval is split while its interpolant misses a step
+  // inside it by more than path_tolerance of the bounding-box diagonal); an interval with no step inside is
+  // split until the interpolant at its midpoint is within path_tolerance of an equilibrium solved there; up to
+  // path_max_samples per target. A step that jumps to another branch (a fold) breaks the path there. Run in
+  // parallel over the targets.
+  // Range: intervals [1, 256], extension [0, 2], tolerance (0, 0.1], max samples [4, 1024].
   bool target_paths = true;
-  int path_intervals = 8;
+  int path_intervals = 32;
   double path_extension = 0.25;
   double path_tolerance = 1e-6;
   int path_max_samples = 64;
@@ -139,7 +142,7 @@ struct RigSummary {
   int path_samples = 0;              // samples kept along the targets' paths
   int path_solves = 0;               // equilibria solved for them (samples and midpoint checks)
   int unconverged_path_samples = 0;  // samples that did not converge (best found kept)
-  int uncertified_path_intervals = 0;  // intervals whose midpoint check did not pass within the sample cap
+  int uncertified_path_intervals = 0;  // intervals not certified within the sample cap, and folds
   double path_max_error = 0.0;       // largest certified midpoint error, of the diagonal
   double path_ms = 0.0;              // time spent on the paths (part of precompute_ms)
   bool paths_loaded = false;         // the paths came from RigBuildControl::precomputed, not solved
