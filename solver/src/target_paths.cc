@@ -3,6 +3,7 @@
 #include <fmt/format.h>
 #include <tbb/parallel_for.h>
 #include <tbb/parallel_invoke.h>
+#include <tbb/task_group.h>
 
 #include <algorithm>
 #include <chrono>
@@ -34,6 +35,12 @@ constexpr std::uint8_t kFold = 3;
 // Solved steps at multiples of 1 / kKeptGrid are always kept.
 constexpr double kKeptGrid = 8.0;
 constexpr char kPathsMagic[8] = {'S', 'B', 'P', 'A', 'T', 'H', '0', '2'};
+
+// Work run by TBB inside a group that another task's exception cancelled (another target's path that was
+// stopped) is skipped without an exception of its own: what it should have filled is empty, so stop too.
+void ThrowIfCancelled() {
+  if (tbb::is_current_task_group_canceling()) throw Error(ErrorCode::kCancelled, "the rig build was cancelled");
+}
 
 double Elapsed(std::chrono::steady_clock::time_point since) {
   return std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - since).count();
@@ -496,6 +503,7 @@ void BuildPath(const Rig& rig, int target, const TargetPathsOptions& options, Ta
     mark_descending(below, &rest_mark);
   };
   tbb::parallel_invoke(sweep_inside, sweep_beyond);
+  ThrowIfCancelled();
   inside.front().fold_before = rest_mark.fold_before;
   // The dense path: every sample the sweeps solved.
   std::vector<Sample> dense(std::make_move_iterator(below.rbegin()), std::make_move_iterator(below.rend()));
@@ -605,6 +613,7 @@ void BuildPath(const Rig& rig, int target, const TargetPathsOptions& options, Ta
     };
     const size_t half = to_solve.size() / 2;
     tbb::parallel_invoke([&] { check(solver, 0, half); }, [&] { check(side, half, to_solve.size()); });
+    ThrowIfCancelled();
     std::vector<int> split;
     std::vector<Sample> added;
     std::vector<int> added_dense;
