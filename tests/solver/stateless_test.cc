@@ -36,8 +36,7 @@ std::shared_ptr<const Rig> Build(const StatelessCase& c) {
   // What is checked (a frame's answer depends on its request alone) does not depend on how densely the paths
   // are swept (solver_target_paths_test checks the default's paths): 8 steps per unit bound CI's time on the
   // face, horse and cat.
-  RigOptions options;
-  options.path_intervals = 8;
+  const RigOptions options = testing::TestRigOptions();
   return Rig::Build(LoadMesh(PathOf(c, c.rest)), std::move(targets), options);
 }
 
