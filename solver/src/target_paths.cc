@@ -527,10 +527,11 @@ void BuildPath(const Rig& rig, int target, const TargetPathsOptions& options, Ta
 
   // The kept samples: at first the ends, the knots, both sides of every switch and fold (where the path is
   // not smooth) and the steps on a grid of kKeptGrid per unit (so a frame at such a weight starts at its
-  // answer, whatever the tolerance); then, as long as an interval's interpolant misses a dense sample inside it by more than
-  // the tolerance, the dense sample nearest its midpoint joins (no solve needed). An interval with no dense
-  // sample inside is checked at its midpoint against an equilibrium solved there from the interpolant, and
-  // split by that equilibrium while the check fails and halving pays.
+  // answer, whatever the tolerance), as far as the cap allows; then, as long as an interval's interpolant
+  // misses a dense sample inside it by more than the tolerance, the dense sample nearest its midpoint joins
+  // (no solve needed). An interval with no dense sample inside is checked at its midpoint against an
+  // equilibrium solved there from the interpolant, and split by that equilibrium while the check fails and
+  // halving pays.
   std::vector<int> dense_of;  // per kept sample: its dense index, or -1 for a midpoint solved by a check
   {
     // Priority 0: the ends and the knots; 1: both sides of switches and folds; 2: the grid. Lower priorities
