@@ -367,6 +367,7 @@ TEST_F(HostileTest, UploadsHoldOnlyWhatTheySentWithinTheBudget) {
     return resident * 4096.0 / (1 << 20);
   }();
   EXPECT_LT(rss_after - rss_before, 100.0) << "4 headers of 2M vertices (about 190 MB each, declared)";
+  const double held_by_headers = Metric("springblend_request_memory_bytes");
   // One upload that sends pieces past the budget (64 MiB, counting twice what arrived) is refused.
   {
     auto context = Context(30);
@@ -386,6 +387,9 @@ TEST_F(HostileTest, UploadsHoldOnlyWhatTheySentWithinTheBudget) {
     EXPECT_EQ(status.error_code(), grpc::StatusCode::RESOURCE_EXHAUSTED) << status.error_message();
     EXPECT_THAT(status.error_message(), HasSubstr("--request-memory-mb"));
   }
+  // The refused upload's memory returns to the budget as its call ends, which may be just after its status
+  // reached the client.
+  WaitForRequestMemory(held_by_headers, std::chrono::seconds(10));
   ExpectServed("with 4 stalled uploads open");
   // The stalled uploads are cut off after --stall-seconds and their memory returns to the budget.
   for (auto& w : writers) {
