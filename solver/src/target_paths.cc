@@ -38,8 +38,10 @@ constexpr char kPathsMagic[8] = {'S', 'B', 'P', 'A', 'T', 'H', '0', '2'};
 
 // Work run by TBB inside a group that another task's exception cancelled (another target's path that was
 // stopped) is skipped without an exception of its own: what it should have filled is empty, so stop too.
+[[noreturn]] void ThrowCancelled() { throw Error(ErrorCode::kCancelled, "the rig build was cancelled"); }
+
 void ThrowIfCancelled() {
-  if (tbb::is_current_task_group_canceling()) throw Error(ErrorCode::kCancelled, "the rig build was cancelled");
+  if (tbb::is_current_task_group_canceling()) ThrowCancelled();
 }
 
 double Elapsed(std::chrono::steady_clock::time_point since) {
@@ -294,7 +296,7 @@ class PathSolver {
   Sample Solve(double alpha, Continuation* continuation, const Eigen::MatrixXd* correction, bool tentative = false,
                int max_iterations = 0) {
     if (stop_ != nullptr && *stop_ && (*stop_)()) {
-      throw Error(ErrorCode::kCancelled, "the rig build was cancelled");
+      ThrowCancelled();
     }
     const int n = rig_.num_vertices();
     const Setup setup = SetUp(alpha);
@@ -356,7 +358,7 @@ class PathSolver {
       if (max_iterations > 0) minimizer_->SetOptions(sample_options_);
     }
     if (summary.termination == MinimizerTermination::kCancelled) {
-      throw Error(ErrorCode::kCancelled, "the rig build was cancelled");
+      ThrowCancelled();
     }
     const bool converged = summary.termination == MinimizerTermination::kConverged;
     newton_iterations += summary.iterations;
