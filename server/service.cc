@@ -614,7 +614,8 @@ class InteractiveReactor final : public grpc::ServerBidiReactor<grpc::ByteBuffer
   void Fail(std::unique_lock<std::mutex>& lock, const grpc::Status& status) { Refuse(lock, status); }
 
   // Queues the jobs there is work for: the setup (with the first frame's solve), a solve of the newest frame
-  // when none runs, a preview of the newest frame when none runs. False (and the session finished) when the
+  // when none runs, a preview of the newest frame when none runs (each unless its answer would only replace
+  // one already waiting behind the write in flight). False (and the session finished) when the
   // queue refuses the session's first job.
   bool Schedule(std::unique_lock<std::mutex>& lock) {
     if (cancelled_ || refused_ || finished_) return true;
@@ -630,8 +631,16 @@ class InteractiveReactor final : public grpc::ServerBidiReactor<grpc::ByteBuffer
       return true;
     }
     if (!ready_) return true;  // the setup job is still running; it schedules again when done
-    if (pending_ && !solving_ && !Submit(lock, &solving_, &InteractiveReactor::RunSolve)) return false;
-    if (to_preview_ && !previewing_ && !Submit(lock, &previewing_, &InteractiveReactor::RunPreview)) return false;
+    // At most one answer of each kind waits behind the write in flight: a client that stops reading stops the
+    // session's work (its newest frame is solved when the write completes), so it holds no worker.
+    if (pending_ && !solving_ && !(writing_ && outbox_solved_) &&
+        !Submit(lock, &solving_, &InteractiveReactor::RunSolve)) {
+      return false;
+    }
+    if (to_preview_ && !previewing_ && !(writing_ && outbox_preview_) &&
+        !Submit(lock, &previewing_, &InteractiveReactor::RunPreview)) {
+      return false;
+    }
     return true;
   }
   // Queues one more job of the session, marking it running; false (the session ends) when the pool refuses.

@@ -175,6 +175,18 @@ class HostileTest : public ::testing::Test {
     EXPECT_EQ(Metric("springblend_request_memory_bytes"), bytes);
   }
 
+  // Polls the pool's gauges until no worker is busy and nothing is queued, twice in a row 100 ms apart.
+  static void WaitForIdlePool(std::chrono::seconds limit) {
+    const auto until = Clock::now() + limit;
+    int quiet = 0;
+    while (quiet < 2 && Clock::now() < until) {
+      std::this_thread::sleep_for(std::chrono::milliseconds(100));
+      quiet = Metric("springblend_workers_busy") == 0 && Metric("springblend_queue_depth") == 0 ? quiet + 1 : 0;
+    }
+    EXPECT_EQ(quiet, 2) << "the pool stayed busy: " << Metric("springblend_workers_busy") << " workers, "
+                        << Metric("springblend_queue_depth") << " queued";
+  }
+
   static TempDir* cache_;
   static std::string log_;
   static ServerProcess* server_;
@@ -265,7 +277,9 @@ TEST_F(HostileTest, ClientsThatStopReadingHoldNoWorkerAndAreCutOff) {
       std::this_thread::sleep_for(std::chrono::milliseconds(2));
     }
   });
-  std::this_thread::sleep_for(std::chrono::milliseconds(500));  // the windows fill
+  // The windows fill, and then none of them holds a worker or a place in the queue (under load that may take
+  // longer than --stall-seconds, in which case they are cut off first: either way the pool comes back).
+  WaitForIdlePool(std::chrono::seconds(20));
   ExpectServed("while 3 Solve streams and 2 sessions do not read");
   // Cut off after --stall-seconds (1.5 s): everything they held is released.
   WaitForRequestMemory(0, std::chrono::seconds(10));
