@@ -1,0 +1,146 @@
+// What every call kind shares: parsing raw requests, the token check, refusals, unary work on a pool, the
+// solvers a stream holds in the memory budget, and the statuses of stopped work. The call kinds themselves
+// live in upload_call.cc, solve_call.cc and interactive_call.cc; service.cc only dispatches to them.
+#pragma once
+
+#include <grpcpp/grpcpp.h>
+#include <grpcpp/support/byte_buffer.h>
+#include <grpcpp/support/proto_buffer_reader.h>
+
+#include <chrono>
+#include <cstdint>
+#include <exception>
+#include <optional>
+
+#include "service.h"
+#include "springblend/error.h"
+#include "status.h"
+
+namespace springblend::server {
+
+inline const grpc::Status kQueueFull = QueueFull();
+
+// The request bytes as a message; false when they do not parse.
+template <typename Message>
+bool Parse(const grpc::ByteBuffer& bytes, Message* message) {
+  grpc::ByteBuffer copy(bytes);  // Deserialize consumes its buffer; copies share the slices
+  return grpc::SerializationTraits<Message>::Deserialize(&copy, message).ok();
+}
+
+template <typename Message>
+grpc::ByteBuffer Serialize(const Message& message) {
+  grpc::ByteBuffer out;
+  bool own = false;
+  grpc::SerializationTraits<Message>::Serialize(message, &out, &own);
+  return out;
+}
+
+// The token check every handler makes before any work; a refusal is counted like any other answer.
+inline std::optional<grpc::Status> Refused(grpc::CallbackServerContext* call, ServiceContext& context, const char* method,
+                                    Access needed) {
+  const AuthVerdict verdict = context.auth.Check(*call, needed);
+  if (verdict.allowed()) return std::nullopt;
+  const grpc::Status status = ToStatus(verdict);
+  context.metrics.CountRequest(method, CodeName(status.error_code()));
+  return status;
+}
+
+// A streaming call refused before any work: it answers with the status and goes.
+template <typename Reactor>
+class Refusal final : public Reactor {
+ public:
+  explicit Refusal(const grpc::Status& status) { this->Finish(status); }
+  void OnDone() override { delete this; }
+};
+
+// Parses the request, then runs `work(request, &response)` on the metadata pool and finishes the unary call with
+// its status; refuses at once when the token does not allow the call, the bytes do not parse, or the queue is
+// full.
+template <typename Request, typename Response, typename Work>
+grpc::ServerUnaryReactor* OnPool(grpc::CallbackServerContext* call, ServiceContext& context, const char* method,
+                                 Access needed, const grpc::ByteBuffer* in, grpc::ByteBuffer* out, Work work) {
+  SolverPool& pool = context.metadata_pool;
+  grpc::ServerUnaryReactor* reactor = call->DefaultReactor();
+  Metrics& metrics = context.metrics;
+  if (auto refused = Refused(call, context, method, needed)) {
+    reactor->Finish(*refused);
+    return reactor;
+  }
+  auto request = std::make_shared<Request>();
+  if (!Parse(*in, request.get())) {
+    const grpc::Status status = Unparseable(Request::descriptor()->name());
+    metrics.CountRequest(method, CodeName(status.error_code()));
+    reactor->Finish(status);
+    return reactor;
+  }
+  const bool queued = pool.TrySubmit([reactor, &metrics, method, request, out, work = std::move(work)]() mutable {
+    grpc::Status status;
+    try {
+      Response response;
+      status = work(*request, &response);
+      if (status.ok()) *out = Serialize(response);
+    } catch (const std::exception& e) {
+      status = ToStatus(e);
+    }
+    metrics.CountRequest(method, CodeName(status.error_code()));
+    reactor->Finish(status);
+  });
+  if (!queued) {
+    metrics.CountRequest(method, CodeName(kQueueFull.error_code()));
+    reactor->Finish(kQueueFull);
+  }
+  return reactor;
+}
+
+// The solvers a stream holds, in the memory budget (Solver::BytesFor each, reserved by the stream) and in the
+// metrics' gauges; given back when the stream goes.
+class SolverCharge {
+ public:
+  explicit SolverCharge(Metrics& metrics) : metrics_(metrics) {}
+  ~SolverCharge() { metrics_.HoldSolvers(-solvers_, -bytes_); }
+  SolverCharge(const SolverCharge&) = delete;
+  SolverCharge& operator=(const SolverCharge&) = delete;
+  // Reserves `count` solvers of `each` bytes in `memory` (at least `required`, the others as the budget has
+  // room); returns how many. Throws LimitError when not even the required ones fit.
+  int Reserve(Reservation& memory, std::int64_t each, int required, int count) {
+    memory.Grow(each * required);
+    int held = required;
+    while (held < count && memory.TryGrow(each)) ++held;
+    solvers_ += held;
+    bytes_ += each * held;
+    metrics_.HoldSolvers(held, each * held);
+    return held;
+  }
+
+ private:
+  Metrics& metrics_;
+  int solvers_ = 0;
+  std::int64_t bytes_ = 0;
+};
+
+inline grpc::Status StoppedStatus(const Watchdog::Handle& watch, const char* what) {
+  if (const char* why = watch.expired()) return Cancelled(why);
+  return Cancelled(what);
+}
+
+inline const grpc::Status kShuttingDown = ShuttingDown();
+
+inline bool CallExpired(const grpc::CallbackServerContext& call) { return std::chrono::system_clock::now() > call.deadline(); }
+
+// The stop check of a rig build a call waits for (its upload, or a rebuild from the cache directory): the
+// client cancelled, the call's deadline passed, or the shutdown's drain is over. Another caller waiting for the
+// same build is not stopped by it (CharacterStore builds it again for them).
+inline StopCheck BuildStop(grpc::CallbackServerContext* call, const ServiceContext& context) {
+  return [call, &context] { return call->IsCancelled() || CallExpired(*call) || context.drain.Passed(); };
+}
+
+// The status of an error from work that built with BuildStop: a stopped build says why it stopped.
+inline grpc::Status BuildStatus(const std::exception& error, grpc::CallbackServerContext* call, const ServiceContext& context) {
+  const auto* e = dynamic_cast<const Error*>(&error);
+  if (e == nullptr || e->code() != ErrorCode::kCancelled) return ToStatus(error);
+  if (context.drain.Passed()) return kShuttingDown;
+  if (CallExpired(*call)) return DeadlineExceeded("the deadline passed while the character was being built");
+  return Cancelled("the call was cancelled while the character was being built");
+}
+
+}  // namespace springblend::server
