@@ -3,6 +3,7 @@
 #include <unistd.h>
 
 #include <chrono>
+#include <cstdlib>
 #include <cstring>
 #include <filesystem>
 #include <fstream>
@@ -11,21 +12,21 @@
 #include <nlohmann/json.hpp>
 #include <sstream>
 
+#include "collider_syntax.h"
 #include "commands.h"
 #include "frame_output.h"
+#include "grpc/health/v1/health.grpc.pb.h"
+#include "remote_call.h"
+#include "rig_file.h"
 #include "scene.h"
 #include "springblend/client.h"
-#include "collider_syntax.h"
-#include "rig_file.h"
 #include "springblend/error.h"
 
 namespace springblend::cli {
 namespace {
 
 struct RemoteArgs {
-  std::string server = "127.0.0.1:50051";
-  bool tls = false;
-  std::string tls_ca, tls_cert, tls_key, tls_server_name, token;
+  Connection connection;
   // upload
   std::string rig, rest, name;
   std::vector<std::string> targets;
@@ -107,20 +108,13 @@ nlohmann::json CharacterJson(const v1::Character& c) {
           {"path_ms", s.path_ms()}};
 }
 
-ClientOptions OptionsOf(const RemoteArgs& args) {
-  ClientOptions options;
-  options.address = args.server;
-  options.tls = args.tls;
-  options.tls_root_ca_file = args.tls_ca;
-  options.tls_cert_file = args.tls_cert;
-  options.tls_key_file = args.tls_key;
-  options.tls_server_name = args.tls_server_name;
-  options.token = args.token;
-  return options;
+// The command's client: the channel its flags describe, its token and its deadline per call.
+Client ClientFor(const std::string& command, const RemoteArgs& args) {
+  return Client(OpenChannel(args.connection), CallOptions(command, args.connection));
 }
 
 int RunUpload(const RemoteArgs& args) {
-  Client client(OptionsOf(args));
+  Client client = ClientFor("upload", args);
   v1::BuildOptions options;
   for (int v : args.fixed) options.add_fixed_vertices(static_cast<std::uint32_t>(v));
   options.set_no_interior(args.no_interior);
@@ -133,12 +127,14 @@ int RunUpload(const RemoteArgs& args) {
     }
     const RigFile rig = LoadRigFile(args.rig);
     for (int v : rig.fixed_vertices) options.add_fixed_vertices(static_cast<std::uint32_t>(v));
-    try {
-      c = client.UploadRig(rig.rest, rig.targets, options, args.name.empty() ? rig.rest.name : args.name);
-    } catch (const ClientError& e) {
-      // The server's refusal names the target and the field; say which file they are in.
-      throw ClientError(e.code(), fmt::format("{}: {}", rig.path, e.what()));
-    }
+    c = Call("upload", [&] {
+      try {
+        return client.UploadRig(rig.rest, rig.targets, options, args.name.empty() ? rig.rest.name : args.name);
+      } catch (const ClientError& e) {
+        // The server's refusal names the target and the field; say which file they are in.
+        throw ClientError(e.code(), fmt::format("{}: {}", rig.path, e.what()));
+      }
+    });
   } else {
     if (args.rest.empty() || args.targets.empty()) {
       throw Error(ErrorCode::kInvalidInput, "give --rest and at least one --target, or --rig RIG.json");
@@ -146,15 +142,16 @@ int RunUpload(const RemoteArgs& args) {
     TriangleMesh rest = LoadMesh(args.rest);
     std::vector<TriangleMesh> targets;
     for (const auto& t : args.targets) targets.push_back(LoadMesh(t));
-    c = client.Upload(rest, targets, options, args.name.empty() ? rest.name : args.name);
+    c = Call("upload", [&] { return client.Upload(rest, targets, options, args.name.empty() ? rest.name : args.name); });
   }
   std::cout << CharacterJson(c).dump() << std::endl;
   return kExitOk;
 }
 
 int RunSolve(const RemoteArgs& args) {
-  Client client(OptionsOf(args));
-  const v1::Character character = client.Get(args.character, /*with_faces=*/true);
+  Client client = ClientFor("solve", args);
+  const v1::Character character =
+      Call("get (the character's faces, before the solve)", [&] { return client.Get(args.character, true); });
   Faces faces(character.faces().size() / 12, 3);
   std::memcpy(faces.data(), character.faces().data(), character.faces().size());
 
@@ -196,7 +193,9 @@ int RunSolve(const RemoteArgs& args) {
   const auto start = std::chrono::steady_clock::now();
   bool all_converged = true;
   const int total = request.frames_size();
-  client.Solve(request, [&](const v1::SolvedFrame& frame) {
+  int received = 0;
+  auto on_frame = [&](const v1::SolvedFrame& frame) {
+    ++received;
     // When the frame arrived, from the start of the call (before the OBJ below is written).
     const double received_ms =
         std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - start).count();
@@ -220,45 +219,71 @@ int RunSolve(const RemoteArgs& args) {
     } else {
       std::cout << line.dump() << std::endl;
     }
-  });
+  };
+  try {
+    client.Solve(request, on_frame);
+  } catch (const ClientError& e) {
+    if (progress) std::cerr << "\n";
+    throw CallError("solve", e, fmt::format("{} of {} frames arrived", received, total));
+  }
   if (progress) std::cerr << "\n";
   output.Finish();
   return all_converged ? kExitOk : kExitNotConverged;
 }
 
 int RunList(const RemoteArgs& args) {
-  Client client(OptionsOf(args));
-  for (const auto& c : client.List()) std::cout << CharacterJson(c).dump() << std::endl;
+  Client client = ClientFor("list", args);
+  for (const auto& c : Call("list", [&] { return client.List(); })) std::cout << CharacterJson(c).dump() << std::endl;
   return kExitOk;
 }
 
 int RunDelete(const RemoteArgs& args) {
-  Client client(OptionsOf(args));
-  client.Delete(args.character);
+  Client client = ClientFor("delete", args);
+  Call("delete", [&] { client.Delete(args.character); });
   std::cout << nlohmann::json({{"deleted", args.character}}).dump() << std::endl;
   return kExitOk;
 }
 
+// The standard health service, asked directly (Client::Healthy says only true or false): a server that
+// answers NOT_SERVING is told apart from one that cannot be reached.
 int RunHealth(const RemoteArgs& args) {
-  Client client(OptionsOf(args));
-  const bool serving = client.Healthy();
-  std::cout << nlohmann::json({{"server", args.server}, {"status", serving ? "SERVING" : "NOT_SERVING"}}).dump()
-            << std::endl;
-  return serving ? kExitOk : kExitUnavailable;
+  using Health = grpc::health::v1::HealthCheckResponse;
+  const std::string address = ResolveAddress(args.connection).address;
+  auto stub = grpc::health::v1::Health::NewStub(OpenChannel(args.connection));
+  grpc::ClientContext context;
+  context.set_deadline(std::chrono::system_clock::now() + *CommandDeadline("health", args.connection));
+  Health response;
+  const grpc::Status status = stub->Check(&context, grpc::health::v1::HealthCheckRequest(), &response);
+  if (!status.ok()) {
+    const bool unreachable = status.error_code() == grpc::StatusCode::UNAVAILABLE ||
+                             status.error_code() == grpc::StatusCode::DEADLINE_EXCEEDED;
+    std::cout << nlohmann::json({{"server", address},
+                                 {"status", unreachable ? "UNREACHABLE" : "ERROR"},
+                                 {"code", StatusName(status.error_code())}})
+                     .dump()
+              << std::endl;
+    throw CallError("health", ClientError(status.error_code(), status.error_message()));
+  }
+  const std::string serving = Health::ServingStatus_Name(response.status());
+  std::cout << nlohmann::json({{"server", address}, {"status", serving}}).dump() << std::endl;
+  return response.status() == Health::SERVING ? kExitOk : kExitUnavailable;
 }
 
-// gRPC failures become exit codes: the caller's mistakes 2, the server's state 4.
-Runner Guarded(std::function<int()> run) {
-  return [run = std::move(run)] {
+// gRPC failures become a message naming the call, the status and what to do, and an exit code: the caller's
+// mistakes 2, the server's state 4.
+Runner Guarded(const std::string& command, std::shared_ptr<const RemoteArgs> args,
+               std::function<int(const RemoteArgs&)> run) {
+  return [command, args = std::move(args), run = std::move(run)] {
     try {
-      return run();
-    } catch (const ClientError& e) {
-      std::cerr << "springblend: server error " << e.code() << ": " << e.what() << "\n";
-      const auto code = static_cast<grpc::StatusCode>(e.code());
-      const bool callers_mistake = code == grpc::StatusCode::INVALID_ARGUMENT || code == grpc::StatusCode::NOT_FOUND ||
-                                   code == grpc::StatusCode::UNAUTHENTICATED ||
-                                   code == grpc::StatusCode::PERMISSION_DENIED;
-      return callers_mistake ? kExitBadInput : kExitUnavailable;
+      return run(*args);
+    } catch (const CallError& e) {
+      const CallFailure failure = Explain(command, e, args->connection);
+      std::cerr << failure.message << "\n";
+      return failure.exit_code;
+    } catch (const ClientError& e) {  // refused by the client library before any call
+      const CallFailure failure = Explain(command, CallError(command, e), args->connection);
+      std::cerr << failure.message << "\n";
+      return failure.exit_code;
     }
   };
 }
@@ -268,16 +293,32 @@ Runner Guarded(std::function<int()> run) {
 std::vector<std::pair<std::string, Runner>> AddServiceCommands(CLI::App& app) {
   auto args = std::make_shared<RemoteArgs>();
   std::vector<std::pair<std::string, Runner>> runners;
+  Connection& connection = args->connection;
   auto server_option = [&](CLI::App* cmd) {
-    cmd->add_option("--server", args->server, "server address (host:port)");
-    cmd->add_flag("--tls", args->tls, "use TLS, checking the server against the system's roots");
-    cmd->add_option("--tls-ca", args->tls_ca, "PEM CA bundle to check the server's certificate with (implies --tls)");
-    cmd->add_option("--tls-cert", args->tls_cert, "PEM client certificate, for servers requiring mutual TLS");
-    cmd->add_option("--tls-key", args->tls_key, "PEM private key of --tls-cert");
-    cmd->add_option("--tls-server-name", args->tls_server_name, "name the server's certificate must carry "
-                                                                 "(default: the host of --server)");
-    cmd->add_option("--token", args->token, "token sent as 'authorization: Bearer TOKEN'")
+    cmd->add_option("--server", connection.server,
+                    fmt::format("server address host:port (default: ${}, else {})", kServerVariable, kDefaultServer));
+    cmd->add_flag("--tls", connection.tls, "use TLS, checking the server against the system's roots");
+    cmd->add_option("--tls-ca", connection.tls_ca,
+                    "PEM CA bundle to check the server's certificate with (implies --tls)");
+    cmd->add_option("--tls-cert", connection.tls_cert, "PEM client certificate, for servers requiring mutual TLS");
+    cmd->add_option("--tls-key", connection.tls_key, "PEM private key of --tls-cert");
+    cmd->add_option("--tls-server-name", connection.tls_server_name, "name the server's certificate must carry "
+                                                                      "(default: the host of --server)");
+    cmd->add_option("--token", connection.token, "token sent as 'authorization: Bearer TOKEN'")
         ->envname("SPRINGBLEND_TOKEN");
+    const auto limit = CommandDeadline(cmd->get_name(), Connection{});
+    cmd->add_option("--timeout", connection.timeout_seconds,
+                    limit ? fmt::format("seconds each call may take (default {:g})", limit->count() / 1000.0)
+                          : std::string("seconds each call may take (default: no limit)"))
+        ->check(CLI::Validator(
+            [](std::string& text) {
+              char* end = nullptr;
+              const double seconds = std::strtod(text.c_str(), &end);
+              return end != text.c_str() && *end == '\0' && seconds > 0.0 && seconds < 1e9
+                         ? std::string()
+                         : fmt::format("seconds, a number above 0 (got '{}')", text);
+            },
+            "SECONDS"));
   };
 
   CLI::App* upload = app.add_subcommand("upload", "upload a character; prints its id and rig summary as JSON");
@@ -291,7 +332,7 @@ std::vector<std::pair<std::string, Runner>> AddServiceCommands(CLI::App& app) {
   upload->add_flag("--no-anchor", args->no_anchor, "no internal anchor");
   upload->add_flag("--no-target-paths", args->no_target_paths,
                    "build no target paths: a faster upload, slower frames (still stateless)");
-  runners.emplace_back("upload", Guarded([args] { return RunUpload(*args); }));
+  runners.emplace_back("upload", Guarded("upload", args, RunUpload));
 
   CLI::App* solve = app.add_subcommand(
       "solve", "solve frames on the server; writes OUT/frame_0000.obj ... (or OUT.pc2) and JSON lines");
@@ -310,20 +351,20 @@ std::vector<std::pair<std::string, Runner>> AddServiceCommands(CLI::App& app) {
   solve->add_option("--max-iterations", args->max_iterations, "Newton iterations per frame");
   solve->add_flag("--linear", args->linear, "the linear blendshape");
   solve->add_flag("--normals", args->normals, "ask for normals too");
-  runners.emplace_back("solve", Guarded([args] { return RunSolve(*args); }));
+  runners.emplace_back("solve", Guarded("solve", args, RunSolve));
 
   CLI::App* list = app.add_subcommand("list", "list the server's characters as JSON lines");
   server_option(list);
-  runners.emplace_back("list", Guarded([args] { return RunList(*args); }));
+  runners.emplace_back("list", Guarded("list", args, RunList));
 
   CLI::App* remove = app.add_subcommand("delete", "delete a character from the server and its cache directory");
   server_option(remove);
   remove->add_option("--character", args->character, "character id")->required();
-  runners.emplace_back("delete", Guarded([args] { return RunDelete(*args); }));
+  runners.emplace_back("delete", Guarded("delete", args, RunDelete));
 
   CLI::App* health = app.add_subcommand("health", "ask the server's health service; exit 0 when SERVING");
   server_option(health);
-  runners.emplace_back("health", Guarded([args] { return RunHealth(*args); }));
+  runners.emplace_back("health", Guarded("health", args, RunHealth));
   return runners;
 }
 

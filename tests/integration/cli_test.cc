@@ -2,14 +2,10 @@
 // files and its exit codes.
 #include <gmock/gmock.h>
 #include <gtest/gtest.h>
-#include <sys/wait.h>
 
-#include <array>
-#include <cstdio>
 #include <fstream>
-#include <nlohmann/json.hpp>
-#include <sstream>
 
+#include "integration/cli_process.h"
 #include "springblend/point_cache.h"
 #include "test_util.h"
 
@@ -17,35 +13,10 @@ namespace springblend {
 namespace {
 
 using ::testing::HasSubstr;
+using testing::CliRun;
 using testing::DataPath;
+using testing::RunCli;
 using testing::TempDir;
-
-struct CliRun {
-  int exit_code = -1;
-  std::vector<nlohmann::json> lines;  // stdout, one JSON document per line
-  std::string stderr_text;
-};
-
-CliRun RunCli(const std::string& arguments, const TempDir& dir) {
-  const std::string err = dir.File("stderr.txt");
-  const std::string command = std::string(SPRINGBLEND_CLI) + " " + arguments + " 2>" + err;
-  CliRun run;
-  FILE* pipe = popen(command.c_str(), "r");
-  if (pipe == nullptr) return run;
-  std::string out;
-  std::array<char, 4096> buffer;
-  size_t n;
-  while ((n = fread(buffer.data(), 1, buffer.size(), pipe)) > 0) out.append(buffer.data(), n);
-  const int status = pclose(pipe);
-  run.exit_code = WIFEXITED(status) ? WEXITSTATUS(status) : -1;
-  std::istringstream lines(out);
-  for (std::string line; std::getline(lines, line);) {
-    if (!line.empty()) run.lines.push_back(nlohmann::json::parse(line));
-  }
-  std::ifstream in(err);
-  run.stderr_text.assign(std::istreambuf_iterator<char>(in), std::istreambuf_iterator<char>());
-  return run;
-}
 
 const std::string kRest = DataPath("cylinder/cylinder.obj");
 const std::string kBend = DataPath("cylinder/poses-2_cylinder-1.obj");

@@ -1,0 +1,195 @@
+// The remote commands of the springblend CLI (upload, solve, list, delete, health) against a real server, a
+// closed port and a port that accepts connections but never answers: --timeout, $SPRINGBLEND_SERVER, and
+// failures told by status name, call and hint.
+#include <arpa/inet.h>
+#include <gmock/gmock.h>
+#include <gtest/gtest.h>
+#include <netinet/in.h>
+#include <sys/socket.h>
+#include <unistd.h>
+
+#include <chrono>
+
+#include "integration/cli_process.h"
+#include "integration/server_process.h"
+#include "test_util.h"
+
+namespace springblend {
+namespace {
+
+using ::testing::HasSubstr;
+using ::testing::Not;
+using testing::CliRun;
+using testing::DataPath;
+using testing::RunCli;
+using testing::ServerProcess;
+using testing::TempDir;
+
+const std::string kCylinder = " --rest " + DataPath("cylinder/cylinder.obj") + " --target " +
+                              DataPath("cylinder/poses-2_cylinder-1.obj") + " --target " +
+                              DataPath("cylinder/poses-2_cylinder-3.obj");
+
+// A loopback port that completes TCP connections (the kernel's backlog) but never speaks HTTP/2: every call
+// to it waits until its deadline, as behind a firewall that swallows packets after the handshake.
+class SilentPort {
+ public:
+  SilentPort() {
+    fd_ = socket(AF_INET, SOCK_STREAM | SOCK_CLOEXEC, 0);
+    sockaddr_in address{};
+    address.sin_family = AF_INET;
+    address.sin_addr.s_addr = htonl(INADDR_LOOPBACK);
+    socklen_t length = sizeof(address);
+    EXPECT_EQ(bind(fd_, reinterpret_cast<sockaddr*>(&address), sizeof(address)), 0);
+    EXPECT_EQ(listen(fd_, 64), 0);
+    EXPECT_EQ(getsockname(fd_, reinterpret_cast<sockaddr*>(&address), &length), 0);
+    address_ = "127.0.0.1:" + std::to_string(ntohs(address.sin_port));
+  }
+  ~SilentPort() { close(fd_); }
+  const std::string& address() const { return address_; }
+
+ private:
+  int fd_ = -1;
+  std::string address_;
+};
+
+// A loopback port nothing listens on (bound, then closed).
+std::string ClosedPort() {
+  SilentPort port;
+  return port.address();
+}
+
+double SecondsOf(const std::function<void()>& run) {
+  const auto start = std::chrono::steady_clock::now();
+  run();
+  return std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
+}
+
+class CliRemoteTest : public ::testing::Test {
+ protected:
+  TempDir dir_, cache_;
+};
+
+TEST_F(CliRemoteTest, SpringblendServerIsTheDefaultAddressOfEveryCommand) {
+  ServerProcess server(cache_.path().string());
+  ASSERT_FALSE(server.address().empty());
+  const std::string env = "SPRINGBLEND_SERVER=" + server.address();
+  const CliRun upload = RunCli("upload" + kCylinder, dir_, env);
+  ASSERT_EQ(upload.exit_code, 0) << upload.stderr_text;
+  const std::string id = upload.lines.at(0)["id"];
+  const CliRun list = RunCli("list", dir_, env);
+  ASSERT_EQ(list.exit_code, 0) << list.stderr_text;
+  ASSERT_EQ(list.lines.size(), 1u);
+  EXPECT_EQ(list.lines[0]["id"], id);
+  const CliRun solve =
+      RunCli("solve --character " + id + " --weights 0.5,0.5 --timeout 60 --out " + dir_.File("frames"), dir_, env);
+  EXPECT_EQ(solve.exit_code, 0) << solve.stderr_text;
+  const CliRun health = RunCli("health --timeout 10", dir_, env);
+  EXPECT_EQ(health.exit_code, 0) << health.stderr_text;
+  EXPECT_EQ(health.lines.at(0)["status"], "SERVING");
+  EXPECT_EQ(health.lines.at(0)["server"], server.address());
+  // --server wins over the variable.
+  const CliRun elsewhere = RunCli("list --server " + ClosedPort(), dir_, env);
+  EXPECT_EQ(elsewhere.exit_code, 4);
+  EXPECT_THAT(elsewhere.stderr_text, HasSubstr("(--server)"));
+  EXPECT_EQ(RunCli("delete --character " + id, dir_, env).exit_code, 0);
+}
+
+TEST_F(CliRemoteTest, AnUnreachableServerIsSaidToBeUnreachableByName) {
+  const std::string address = ClosedPort();
+  const CliRun health = RunCli("health --server " + address, dir_);
+  EXPECT_EQ(health.exit_code, 4);
+  ASSERT_EQ(health.lines.size(), 1u);
+  EXPECT_EQ(health.lines[0]["status"], "UNREACHABLE");
+  EXPECT_EQ(health.lines[0]["code"], "UNAVAILABLE");
+  EXPECT_THAT(health.stderr_text, Not(HasSubstr("NOT_SERVING")));
+  EXPECT_THAT(health.stderr_text, HasSubstr("springblend health: UNAVAILABLE: cannot reach a springblend server at " +
+                                            address));
+  for (const std::string& command : std::vector<std::string>{"list", "upload" + kCylinder}) {
+    const CliRun run = RunCli(command + " --server " + address, dir_);
+    EXPECT_EQ(run.exit_code, 4) << command;
+    EXPECT_THAT(run.stderr_text, HasSubstr(": UNAVAILABLE: cannot reach")) << command;
+    EXPECT_THAT(run.stderr_text, HasSubstr("$SPRINGBLEND_SERVER")) << command;
+    EXPECT_THAT(run.stderr_text, Not(HasSubstr(" 14"))) << command;
+  }
+  // Without --server nor the variable, the message says the default was used.
+  const CliRun fallback = RunCli("list", dir_, "SPRINGBLEND_SERVER=");
+  if (fallback.exit_code != 0) {
+    EXPECT_THAT(fallback.stderr_text, HasSubstr("127.0.0.1:50051 (the default)"));
+  }
+}
+
+TEST_F(CliRemoteTest, TimeoutBoundsEveryCommandAndTheMessageNamesTheCallAndTheFix) {
+  SilentPort silent;
+  const std::string server = " --server " + silent.address() + " --timeout 1";
+  const std::vector<std::pair<std::string, std::string>> commands = {
+      {"list", "list"},
+      {"delete --character " + std::string(64, 'a'), "delete"},
+      {"upload" + kCylinder, "upload"},
+      {"solve --character " + std::string(64, 'a') + " --weights 0.5,0.5 --out " + dir_.File("never"), "get"},
+      {"health", "health"}};
+  for (const auto& [command, call] : commands) {
+    CliRun run;
+    const double seconds = SecondsOf([&] { run = RunCli(command + server, dir_); });
+    EXPECT_EQ(run.exit_code, 4) << command << ": " << run.stderr_text;
+    EXPECT_LT(seconds, 10.0) << command;
+    EXPECT_THAT(run.stderr_text, HasSubstr("DEADLINE_EXCEEDED: " + call)) << command;
+    EXPECT_THAT(run.stderr_text, HasSubstr("did not finish within --timeout 1 s")) << command;
+    EXPECT_THAT(run.stderr_text, HasSubstr("raise --timeout")) << command;
+  }
+  const CliRun upload = RunCli("upload" + kCylinder + server, dir_);
+  EXPECT_THAT(upload.stderr_text, HasSubstr("leave it out: upload has no time limit by default"));
+  const CliRun health = RunCli("health" + server, dir_);
+  EXPECT_EQ(health.lines.at(0)["status"], "UNREACHABLE");
+  // Health's default limit is 5 s, and the message says it was the default.
+  const CliRun by_default = RunCli("health --server " + silent.address(), dir_);
+  EXPECT_EQ(by_default.exit_code, 4);
+  EXPECT_THAT(by_default.stderr_text, HasSubstr("within 5 s (the default limit of health)"));
+  EXPECT_THAT(by_default.stderr_text, HasSubstr("pass --timeout SECONDS"));
+}
+
+TEST_F(CliRemoteTest, ASolveOverItsTimeoutSaysHowManyFramesArrived) {
+  ServerProcess server(cache_.path().string(), {"--workers", "1"});
+  ASSERT_FALSE(server.address().empty());
+  const std::string remote = " --server " + server.address();
+  const CliRun upload = RunCli("upload" + kCylinder + remote + " --no-target-paths", dir_);
+  ASSERT_EQ(upload.exit_code, 0) << upload.stderr_text;
+  const std::string id = upload.lines.at(0)["id"];
+  // 5000 frames on one worker take far longer than a second.
+  const CliRun solve = RunCli("solve --character " + id + " --weights 1,1 --sweep 5000 --timeout 1 --out " +
+                                  dir_.File("sweep") + remote,
+                              dir_);
+  EXPECT_EQ(solve.exit_code, 4) << solve.stderr_text;
+  EXPECT_THAT(solve.stderr_text, HasSubstr("springblend solve: DEADLINE_EXCEEDED: solve did not finish within "
+                                           "--timeout 1 s"));
+  EXPECT_THAT(solve.stderr_text, HasSubstr("of 5000 frames arrived"));
+  EXPECT_THAT(solve.stderr_text, HasSubstr("leave it out: solve has no time limit by default"));
+  // The server is fine afterwards.
+  EXPECT_EQ(RunCli("health" + remote, dir_).exit_code, 0);
+}
+
+TEST_F(CliRemoteTest, RefusalsAreNamedWithAHint) {
+  ServerProcess server(cache_.path().string(), {"--token", "cli-secret"});
+  ASSERT_FALSE(server.address().empty());
+  const std::string remote = " --server " + server.address();
+  const CliRun anonymous = RunCli("list" + remote, dir_, "SPRINGBLEND_TOKEN=");
+  EXPECT_EQ(anonymous.exit_code, 2);
+  EXPECT_THAT(anonymous.stderr_text, HasSubstr("springblend list: UNAUTHENTICATED: "));
+  EXPECT_THAT(anonymous.stderr_text, HasSubstr("pass --token TOKEN or set $SPRINGBLEND_TOKEN"));
+  const CliRun wrong = RunCli("list --token nope" + remote, dir_);
+  EXPECT_EQ(wrong.exit_code, 2);
+  EXPECT_THAT(wrong.stderr_text, HasSubstr("does not accept this token"));
+  const CliRun unknown = RunCli("delete --character " + std::string(64, 'b') + remote, dir_,
+                                "SPRINGBLEND_TOKEN=cli-secret");
+  EXPECT_EQ(unknown.exit_code, 2);
+  EXPECT_THAT(unknown.stderr_text, HasSubstr("springblend delete: NOT_FOUND: "));
+  EXPECT_THAT(unknown.stderr_text, HasSubstr("springblend list shows"));
+  // Health needs no token.
+  EXPECT_EQ(RunCli("health" + remote, dir_, "SPRINGBLEND_TOKEN=").exit_code, 0);
+  // A CA file that is not there is named.
+  const CliRun no_ca = RunCli("list --tls-ca " + dir_.File("missing-ca.pem") + remote, dir_);
+  EXPECT_EQ(no_ca.exit_code, 2);
+  EXPECT_THAT(no_ca.stderr_text, HasSubstr("--tls-ca: cannot open " + dir_.File("missing-ca.pem")));
+}
+
+}  // namespace
+}  // namespace springblend
