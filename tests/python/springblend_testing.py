@@ -1,8 +1,9 @@
 """Shared by the Python client tests and the Blender add-on test: a real springblend-server on a free
 loopback port, the springblend CLI, and the cylinder test data as numpy arrays.
 
-Paths come from the environment CTest sets (tests/CMakeLists.txt): SPRINGBLEND_SERVER, SPRINGBLEND_CLI and
-SPRINGBLEND_TEST_DATA. Nothing here imports the springblend package, so Blender can use it too.
+Paths come from the environment CTest sets (tests/CMakeLists.txt): SPRINGBLEND_SERVER_BINARY, SPRINGBLEND_CLI and
+SPRINGBLEND_TEST_DATA ($SPRINGBLEND_SERVER is the clients' default address, so it never names the binary).
+Nothing here imports the springblend package, so Blender can use it too.
 """
 
 import json
@@ -72,7 +73,7 @@ class Server:
         self.log_path = os.path.join(self.directory, "server.log")
         self._log = open(self.log_path, "w")
         self.process = subprocess.Popen(
-            [required_path("SPRINGBLEND_SERVER"), "--listen", "127.0.0.1:0",
+            [required_path("SPRINGBLEND_SERVER_BINARY"), "--listen", "127.0.0.1:0",
              "--cache-dir", os.path.join(self.directory, "cache"), *arguments],
             stdout=subprocess.PIPE, stderr=self._log, text=True)
         self.address = self._wait_for_address(startup_seconds)
@@ -159,3 +160,52 @@ def cli_blend_rig(rig, weights, directory):
     out_dir = os.path.join(directory, "rig_local")
     cli("blend", "--rig", str(rig), "--frames", scene, "--out", out_dir)
     return np.stack([load_obj(os.path.join(out_dir, f"frame_{i:04d}.obj"))[0] for i in range(len(weights))])
+
+
+class Certificates:
+    """A test CA with a server certificate for localhost and 127.0.0.1 and a client certificate, and a second
+    CA the server does not know, made with the openssl command (as tests/integration/security_test.cc makes
+    them). file(name) is the path of "ca.pem", "server.pem", "server.key", "client.pem", "client.key",
+    "rogue-ca.pem"; a context manager that removes them."""
+
+    _KEY = ["-newkey", "ec", "-pkeyopt", "ec_paramgen_curve:prime256v1", "-nodes"]
+
+    def __init__(self):
+        self.directory = tempfile.mkdtemp(prefix="springblend-certs-")
+        self._ca("ca", "springblend test CA")
+        self._ca("rogue-ca", "another CA")
+        self._issue("server", "ca", "localhost",
+                    "subjectAltName=DNS:localhost,IP:127.0.0.1\nextendedKeyUsage=serverAuth")
+        self._issue("client", "ca", "a trusted artist", "extendedKeyUsage=clientAuth")
+
+    def file(self, name):
+        return os.path.join(self.directory, name)
+
+    def _openssl(self, *arguments):
+        result = subprocess.run(["openssl", *arguments], capture_output=True, text=True)
+        if result.returncode != 0:
+            raise RuntimeError(f"openssl {' '.join(arguments)} failed:\n{result.stderr}")
+
+    def _ca(self, name, subject):
+        self._openssl("req", "-x509", *self._KEY, "-days", "2", "-subj", f"/CN={subject}",
+                      "-addext", "basicConstraints=critical,CA:TRUE",
+                      "-addext", "keyUsage=critical,keyCertSign,cRLSign",
+                      "-keyout", self.file(f"{name}.key"), "-out", self.file(f"{name}.pem"))
+
+    def _issue(self, name, ca, subject, extensions):
+        with open(self.file(f"{name}.ext"), "w") as ext:
+            ext.write(f"basicConstraints=CA:FALSE\n{extensions}\n")
+        self._openssl("req", "-new", *self._KEY, "-subj", f"/CN={subject}", "-keyout", self.file(f"{name}.key"),
+                      "-out", self.file(f"{name}.csr"))
+        self._openssl("x509", "-req", "-days", "2", "-in", self.file(f"{name}.csr"), "-CA", self.file(f"{ca}.pem"),
+                      "-CAkey", self.file(f"{ca}.key"), "-CAcreateserial", "-extfile", self.file(f"{name}.ext"),
+                      "-out", self.file(f"{name}.pem"))
+
+    def close(self):
+        shutil.rmtree(self.directory, ignore_errors=True)
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()

@@ -5,6 +5,7 @@ as numpy arrays in the rest mesh's vertex order.
 """
 
 import dataclasses
+import os
 import queue
 import typing
 
@@ -18,6 +19,11 @@ from springblend.errors import SpringblendError, invalid_argument
 # The metadata header that names the character of a call, so a load balancer can route by it (the C++
 # client's kCharacterHeader).
 CHARACTER_HEADER = "x-springblend-character"
+
+# The environment variables the CLI reads too: the server's address when none is given, and the token.
+SERVER_VARIABLE = "SPRINGBLEND_SERVER"
+TOKEN_VARIABLE = "SPRINGBLEND_TOKEN"
+DEFAULT_SERVER = "127.0.0.1:50051"
 
 
 @dataclasses.dataclass
@@ -52,17 +58,39 @@ class Solution:
 class Client:
     """A connection to one server (or a load balancer in front of a farm).
 
+    The TLS and token arguments are the CLI's --tls, --tls-ca, --tls-cert, --tls-key, --tls-server-name and
+    --token, with the same environment variables.
+
     Args:
-        address: host:port of the server.
-        timeout: seconds allowed for each call (a Solve stream counts as one call).
+        address: host:port of the server; None: $SPRINGBLEND_SERVER, else 127.0.0.1:50051.
+        timeout: seconds allowed for each call (a Solve stream counts as one call); None: no limit.
         piece_bytes: upload piece size, well under gRPC's 4 MiB message limit.
+        tls: use TLS, checking the server against the system's roots (implied by tls_ca, tls_cert, tls_key).
+        tls_ca: a PEM CA bundle to check the server's certificate with.
+        tls_cert, tls_key: this client's PEM certificate and key, for servers that require mutual TLS.
+        tls_server_name: the name the server's certificate must carry (default: the host of address).
+        token: sent on every call as "authorization: Bearer TOKEN"; None: $SPRINGBLEND_TOKEN; "": none.
     """
 
-    def __init__(self, address="127.0.0.1:50051", timeout=600.0, piece_bytes=1 << 20):
-        self.address = address
+    def __init__(self, address=None, timeout=600.0, piece_bytes=1 << 20, *, tls=False, tls_ca=None, tls_cert=None,
+                 tls_key=None, tls_server_name=None, token=None):
+        self.address, self.address_source = _resolve_address(address)
         self.timeout = timeout
         self.piece_bytes = piece_bytes
-        self._channel = grpc.insecure_channel(address, options=[("grpc.max_receive_message_length", 256 << 20)])
+        self.tls = bool(tls or tls_ca or tls_cert or tls_key)
+        self._token = os.environ.get(TOKEN_VARIABLE, "") if token is None else token
+        options = [("grpc.max_receive_message_length", 256 << 20)]
+        if self.tls:
+            if bool(tls_cert) != bool(tls_key):
+                raise invalid_argument("tls_cert and tls_key go together (the client certificate and its key)")
+            credentials = grpc.ssl_channel_credentials(root_certificates=_read_pem("tls_ca", tls_ca),
+                                                       private_key=_read_pem("tls_key", tls_key),
+                                                       certificate_chain=_read_pem("tls_cert", tls_cert))
+            if tls_server_name:
+                options.append(("grpc.ssl_target_name_override", tls_server_name))
+            self._channel = grpc.secure_channel(self.address, credentials, options=options)
+        else:
+            self._channel = grpc.insecure_channel(self.address, options=options)
         self._characters = pb_grpc.CharacterServiceStub(self._channel)
         self._solves = pb_grpc.SolveServiceStub(self._channel)
         self._health = self._channel.unary_unary(
@@ -202,10 +230,18 @@ class Client:
     def healthy(self, timeout=5.0):
         """True when the server's standard health service reports SERVING (False when unreachable)."""
         try:
-            response = self._health(health_pb2.HealthCheckRequest(), timeout=timeout)
-        except grpc.RpcError:
+            return self.health(timeout) == "SERVING"
+        except SpringblendError:
             return False
-        return response.status == health_pb2.HealthCheckResponse.SERVING
+
+    def health(self, timeout=5.0):
+        """What the server's standard health service reports: "SERVING", or "NOT_SERVING" while it drains.
+        Raises SpringblendError (UNAVAILABLE, saying so) when no server answers at the address. Needs no token."""
+        try:
+            response = self._health(health_pb2.HealthCheckRequest(), timeout=timeout)
+        except grpc.RpcError as error:
+            raise self._error(error) from None
+        return health_pb2.HealthCheckResponse.ServingStatus.Name(response.status)
 
     # ---------------------------------------------------------------------------------------------------
     # Solving
@@ -241,10 +277,10 @@ class Client:
                                     linear=bool(linear), with_normals=bool(normals)),
             frames=_frame_requests(weights, collider_transforms, pins))
         try:
-            for frame in self._solves.Solve(request, timeout=self.timeout, metadata=_route(character_id)):
+            for frame in self._solves.Solve(request, timeout=self.timeout, metadata=self._metadata(character_id)):
                 yield _decode(frame)
         except grpc.RpcError as error:
-            raise SpringblendError.from_rpc_error(error) from None
+            raise self._error(error) from None
 
     def interactive(self, character_id, colliders=(), tolerance=0.0, max_iterations=0, linear=False,
                     normals=False, previews=False):
@@ -256,13 +292,38 @@ class Client:
             options=pb.SolveOptions(residual_tolerance=float(tolerance), max_iterations=int(max_iterations),
                                     linear=bool(linear), with_normals=bool(normals)),
             previews=bool(previews))
-        return InteractiveSession(self._solves, start, self.timeout)
+        return InteractiveSession(self._solves, start, self.timeout, self._metadata(character_id), self._error)
 
     def _call(self, method, request, character_id=""):
         try:
-            return method(request, timeout=self.timeout, metadata=_route(character_id))
+            return method(request, timeout=self.timeout, metadata=self._metadata(character_id))
         except grpc.RpcError as error:
-            raise SpringblendError.from_rpc_error(error) from None
+            raise self._error(error) from None
+
+    def _metadata(self, character_id):
+        """The routing header and the token of a call."""
+        token = (("authorization", f"Bearer {self._token}"),) if self._token else ()
+        return _route(character_id) + token
+
+    def _error(self, rpc_error):
+        """A SpringblendError whose message says what to do where gRPC's alone would not."""
+        error = SpringblendError.from_rpc_error(rpc_error)
+        code, message = error.code, error.message
+        if code == grpc.StatusCode.UNAVAILABLE and "shutting down" not in message:
+            message = f"cannot reach a springblend server at {self.address} ({self.address_source}): {message}"
+            if not self.tls:
+                message += "; a server using TLS needs tls=True or tls_ca"
+            elif any(word in message for word in ("SSL", "ssl", "handshake", "certificate")):
+                message += ("; the TLS handshake failed: tls_ca must name the CA that signed the server's "
+                            "certificate, tls_server_name a name it carries, and a server requiring client "
+                            "certificates needs tls_cert and tls_key")
+        elif code == grpc.StatusCode.UNAUTHENTICATED:
+            message += (f"; pass token= to springblend.Client or set ${TOKEN_VARIABLE}" if not self._token else
+                        f"; the server does not accept this token (token= or ${TOKEN_VARIABLE})")
+        elif code == grpc.StatusCode.DEADLINE_EXCEEDED and message == "Deadline Exceeded":
+            message = (f"the call did not finish within the client's timeout of {self.timeout:g} s; pass a larger "
+                       "timeout= (None: no limit)")
+        return SpringblendError(code, message)
 
 
 class InteractiveSession:
@@ -275,12 +336,13 @@ class InteractiveSession:
 
     _END = object()
 
-    def __init__(self, stub, start, timeout):
+    def __init__(self, stub, start, timeout, metadata, explain):
         self._outbox = queue.Queue()
         self._outbox.put(pb.InteractiveRequest(start=start))
         self._sent = 0
         self._closed = False
-        self._responses = stub.Interactive(self._requests(), timeout=timeout, metadata=_route(start.character_id))
+        self._explain = explain
+        self._responses = stub.Interactive(self._requests(), timeout=timeout, metadata=metadata)
 
     def _requests(self):
         while True:
@@ -319,7 +381,7 @@ class InteractiveSession:
         except StopIteration:
             return None
         except grpc.RpcError as error:
-            raise SpringblendError.from_rpc_error(error) from None
+            raise self._explain(error) from None
 
     def __iter__(self):
         while (frame := self.next_frame()) is not None:
@@ -337,6 +399,29 @@ class InteractiveSession:
 
 def _route(character_id):
     return ((CHARACTER_HEADER, character_id),) if character_id else ()
+
+
+def _resolve_address(address):
+    """(address, where it came from): the argument, $SPRINGBLEND_SERVER, or 127.0.0.1:50051."""
+    if address:
+        return address, "given"
+    if os.environ.get(SERVER_VARIABLE):
+        return os.environ[SERVER_VARIABLE], f"${SERVER_VARIABLE}"
+    return DEFAULT_SERVER, "the default"
+
+
+def _read_pem(what, path):
+    """The bytes of a PEM file (None when no path is given); a missing or non-PEM file is named."""
+    if not path:
+        return None
+    try:
+        with open(path, "rb") as pem:
+            data = pem.read()
+    except OSError as error:
+        raise invalid_argument(f"{what}: cannot read {path}: {error.strerror or error}") from None
+    if b"-----BEGIN " not in data:
+        raise invalid_argument(f"{what}: {path} is not a PEM file")
+    return data
 
 
 def _decode(frame):
