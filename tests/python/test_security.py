@@ -90,7 +90,7 @@ class SecuredServerTest(unittest.TestCase):
         with self.client(token="not-a-token") as wrong:
             error = self.refusal(wrong.list)
             self.assertEqual(error.code, grpc.StatusCode.UNAUTHENTICATED)
-            self.assertIn("does not accept this token", error.message)
+            self.assertIn("check token= or $SPRINGBLEND_TOKEN", error.message)
 
     def test_a_wrong_ca_or_name_or_plaintext_cannot_reach_the_server(self):
         with self.client(tls_ca=self.certificates.file("rogue-ca.pem"), token=FULL_TOKEN, timeout=10) as rogue:

@@ -34,15 +34,38 @@ def client_module():
                     "preference 'Client package' to build/release/python")
 
 
+def server_address(scene):
+    """The scene's server, else $SPRINGBLEND_SERVER, else 127.0.0.1:50051 (as the CLI and the Python client)."""
+    client = client_module().client
+    return (scene.springblend.server.strip() or os.environ.get(client.SERVER_VARIABLE, "").strip()
+            or client.DEFAULT_SERVER)
+
+
+def client_options(scene):
+    """springblend.Client's arguments: the scene's server and timeout, and the preferences' TLS files and token
+    (an empty token field: $SPRINGBLEND_TOKEN)."""
+    options = {"address": server_address(scene), "timeout": float(scene.springblend.timeout)}
+    preferences = _preferences()
+    if preferences is not None:
+        def path(value):
+            return bpy.path.abspath(value) if value else None
+
+        options.update(tls=preferences.use_tls, tls_ca=path(preferences.tls_ca), tls_cert=path(preferences.tls_cert),
+                       tls_key=path(preferences.tls_key), tls_server_name=preferences.tls_server_name.strip() or None,
+                       token=preferences.token.strip() or None)
+    return options
+
+
 def connect(scene):
-    """A springblend.Client for the scene's server address."""
-    settings = scene.springblend
-    address = settings.server.strip()
-    if not address:
-        raise UserError("set the springblend server address (host:port) first")
-    return client_module().Client(address, timeout=float(settings.timeout))
+    """A springblend.Client for the scene's server, with the add-on preferences' TLS and token."""
+    return client_module().Client(**client_options(scene))
+
+
+def _preferences():
+    addon = bpy.context.preferences.addons.get(ADDON)
+    return addon.preferences if addon and addon.preferences else None
 
 
 def _preferred_path():
-    addon = bpy.context.preferences.addons.get(ADDON)
-    return bpy.path.abspath(addon.preferences.python_path) if addon and addon.preferences else ""
+    preferences = _preferences()
+    return bpy.path.abspath(preferences.python_path) if preferences is not None else ""

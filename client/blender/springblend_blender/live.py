@@ -60,9 +60,9 @@ class Channel:
     """The worker side of a preview: a sender and a reader thread around one Interactive session at a time.
     post() and take() are the main thread's only entry points; nothing here touches bpy."""
 
-    def __init__(self, springblend, address, timeout, character_id, colliders):
+    def __init__(self, springblend, client_options, character_id, colliders):
         self._springblend = springblend
-        self._address, self._timeout = address, timeout
+        self._client_options = dict(client_options)  # springblend.Client's arguments (connection.client_options)
         self._character_id, self._colliders = character_id, list(colliders)
         self._lock = threading.Condition()
         self._pending = None     # the newest request not yet sent
@@ -148,7 +148,7 @@ class Channel:
 
     def _send_loop(self):
         try:
-            self._client = self._springblend.Client(self._address, timeout=self._timeout)
+            self._client = self._springblend.Client(**self._client_options)
             names = list(self._client.get(self._character_id).target_names)
             with self._lock:
                 self.target_names = names
@@ -257,14 +257,12 @@ def start(context):
     if not obj.springblend_character:
         raise UserError(f"'{obj.name}' has not been uploaded: press Upload Character first")
     springblend = connection.client_module()
-    address = scene.springblend.server.strip()
-    if not address:
-        raise UserError("set the springblend server address (host:port) first")
+    options = connection.client_options(scene)
     colliders = scene_data.collider_objects(scene.springblend.colliders)
     shapes = [scene_data.collider_message(springblend, scene_data.collider_geometry(obj, c)) for c in colliders]
-    channel = Channel(springblend, address, float(scene.springblend.timeout), obj.springblend_character, shapes)
+    channel = Channel(springblend, options, obj.springblend_character, shapes)
     _hide_bake(obj)
-    _preview = Preview(scene, obj, channel, address)
+    _preview = Preview(scene, obj, channel, options["address"])
     _last_report = ""
     if not bpy.app.timers.is_registered(poll):
         bpy.app.timers.register(poll, first_interval=POLL_SECONDS)

@@ -24,7 +24,7 @@ class _Guarded:
         except Exception as error:  # noqa: BLE001 - shown to the artist instead of a traceback
             springblend = _loaded_client()
             if springblend is not None and isinstance(error, springblend.SpringblendError):
-                self.report({"ERROR"}, f"springblend server {context.scene.springblend.server}: "
+                self.report({"ERROR"}, f"springblend server {connection.server_address(context.scene)}: "
                                        f"{error.code.name}: {error.message}")
             else:
                 self.report({"ERROR"}, f"springblend: unexpected {type(error).__name__}: {error}")
@@ -44,10 +44,15 @@ class SPRINGBLEND_OT_check_server(_Guarded, bpy.types.Operator):
     bl_label = "Check Server"
 
     def run(self, context):
+        springblend = connection.client_module()
         with connection.connect(context.scene) as client:
-            if not client.healthy():
-                raise UserError(f"no springblend server is serving at {client.address}")
-        self.report({"INFO"}, f"springblend server {context.scene.springblend.server} is serving")
+            try:
+                status = client.health()
+            except springblend.SpringblendError as error:
+                raise UserError(f"no springblend server answers at {client.address}: {error.message}") from None
+        if status != "SERVING":
+            raise UserError(f"the springblend server at {client.address} is {status} (draining before it stops?)")
+        self.report({"INFO"}, f"springblend server {client.address} is serving")
         return {"FINISHED"}
 
 
@@ -240,7 +245,7 @@ class SPRINGBLEND_OT_live_preview(_Guarded, bpy.types.Operator):
             return {"FINISHED"}
         live.start(context)
         self.report({"INFO"}, f"springblend: live preview of '{context.active_object.name}' on "
-                              f"{context.scene.springblend.server}")
+                              f"{live.active().address}")
         return {"FINISHED"}
 
 

@@ -5,7 +5,9 @@ import bpy
 
 
 class SpringblendPreferences(bpy.types.AddonPreferences):
-    """Where to find the springblend Python client when it is not bundled in the add-on."""
+    """Where to find the springblend Python client when it is not bundled in the add-on, and how to reach a
+    secured farm: TLS and a token, as the CLI's --tls, --tls-ca, --tls-cert, --tls-key, --tls-server-name and
+    --token. Preferences belong to the user, never to a .blend file, so a token does not travel with scenes."""
     bl_idname = __package__
 
     python_path: bpy.props.StringProperty(
@@ -13,17 +15,42 @@ class SpringblendPreferences(bpy.types.AddonPreferences):
         description="Directory holding the springblend Python package (e.g. build/release/python); not needed "
                     "when the add-on was installed from springblend_blender.zip",
         subtype="DIR_PATH")
+    use_tls: bpy.props.BoolProperty(
+        name="TLS", default=False,
+        description="Use TLS, checking the server against the system's roots (on whenever a TLS file is set)")
+    tls_ca: bpy.props.StringProperty(
+        name="CA bundle", subtype="FILE_PATH",
+        description="PEM CA bundle to check the server's certificate with (the CLI's --tls-ca)")
+    tls_cert: bpy.props.StringProperty(
+        name="Client certificate", subtype="FILE_PATH",
+        description="PEM client certificate, for servers requiring mutual TLS (--tls-cert)")
+    tls_key: bpy.props.StringProperty(
+        name="Client key", subtype="FILE_PATH", description="PEM private key of the client certificate (--tls-key)")
+    tls_server_name: bpy.props.StringProperty(
+        name="Server name",
+        description="Name the server's certificate must carry (default: the host of the server address; "
+                    "--tls-server-name)")
+    token: bpy.props.StringProperty(
+        name="Token", subtype="PASSWORD",
+        description="Sent on every call as 'authorization: Bearer TOKEN' (--token); empty: $SPRINGBLEND_TOKEN")
 
     def draw(self, context):
-        self.layout.prop(self, "python_path")
+        layout = self.layout
+        layout.prop(self, "python_path")
+        box = layout.box()
+        box.label(text="Secured farm")
+        box.prop(self, "use_tls")
+        for name in ("tls_ca", "tls_cert", "tls_key", "tls_server_name", "token"):
+            box.prop(self, name)
 
 
 class SpringblendSceneSettings(bpy.types.PropertyGroup):
     """Scene.springblend: the server and what a bake covers."""
 
     server: bpy.props.StringProperty(
-        name="Server", default="127.0.0.1:50051",
-        description="host:port of the springblend server or of the farm's load balancer")
+        name="Server", default="",
+        description="host:port of the springblend server or of the farm's load balancer (empty: "
+                    "$SPRINGBLEND_SERVER, else 127.0.0.1:50051); TLS and the token are in the add-on's preferences")
     timeout: bpy.props.FloatProperty(
         name="Timeout", default=600.0, min=1.0, unit="TIME_ABSOLUTE",
         description="Seconds allowed for one call (a whole bake is one call)")

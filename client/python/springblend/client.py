@@ -319,7 +319,7 @@ class Client:
                             "certificates needs tls_cert and tls_key")
         elif code == grpc.StatusCode.UNAUTHENTICATED:
             message += (f"; pass token= to springblend.Client or set ${TOKEN_VARIABLE}" if not self._token else
-                        f"; the server does not accept this token (token= or ${TOKEN_VARIABLE})")
+                        f"; check token= or ${TOKEN_VARIABLE}")
         elif code == grpc.StatusCode.DEADLINE_EXCEEDED and message == "Deadline Exceeded":
             message = (f"the call did not finish within the client's timeout of {self.timeout:g} s; pass a larger "
                        "timeout= (None: no limit)")
