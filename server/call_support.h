@@ -53,12 +53,13 @@ class Refusal final : public Reactor {
   void OnDone() override { delete this; }
 };
 
-// Parses the request, then runs `work(request, &response)` on the metadata pool and finishes the unary call with
-// its status; refuses at once when the token does not allow the call, the bytes do not parse, or the queue is
-// full.
+// Parses the request, then runs `work(request, &response, done)` on the metadata pool; `done(status)` finishes
+// the unary call, once, from any thread (now, or later: a call that waits for a build holds no worker).
+// Refuses at once when the token does not allow the call, the bytes do not parse, or the queue is full.
 template <typename Request, typename Response, typename Work>
-grpc::ServerUnaryReactor* OnPool(grpc::CallbackServerContext* call, ServiceContext& context, const char* method,
-                                 Access needed, const grpc::ByteBuffer* in, grpc::ByteBuffer* out, Work work) {
+grpc::ServerUnaryReactor* OnPoolDeferred(grpc::CallbackServerContext* call, ServiceContext& context,
+                                         const char* method, Access needed, const grpc::ByteBuffer* in,
+                                         grpc::ByteBuffer* out, Work work) {
   SolverPool& pool = context.metadata_pool;
   grpc::ServerUnaryReactor* reactor = call->DefaultReactor();
   Metrics& metrics = context.metrics;
@@ -74,22 +75,34 @@ grpc::ServerUnaryReactor* OnPool(grpc::CallbackServerContext* call, ServiceConte
     return reactor;
   }
   const bool queued = pool.TrySubmit([reactor, &metrics, method, request, out, work = std::move(work)]() mutable {
-    grpc::Status status;
+    auto response = std::make_shared<Response>();
+    const auto done = [reactor, &metrics, method, response, out](const grpc::Status& status) {
+      if (status.ok()) *out = Serialize(*response);
+      metrics.CountRequest(method, CodeName(status.error_code()));
+      reactor->Finish(status);
+    };
     try {
-      Response response;
-      status = work(*request, &response);
-      if (status.ok()) *out = Serialize(response);
+      work(*request, response.get(), done);
     } catch (const std::exception& e) {
-      status = ToStatus(e);
+      done(ToStatus(e));
     }
-    metrics.CountRequest(method, CodeName(status.error_code()));
-    reactor->Finish(status);
   });
   if (!queued) {
     metrics.CountRequest(method, CodeName(kQueueFull.error_code()));
     reactor->Finish(kQueueFull);
   }
   return reactor;
+}
+
+// OnPoolDeferred for work that answers before it returns: `work(request, &response)` gives the status.
+template <typename Request, typename Response, typename Work>
+grpc::ServerUnaryReactor* OnPool(grpc::CallbackServerContext* call, ServiceContext& context, const char* method,
+                                 Access needed, const grpc::ByteBuffer* in, grpc::ByteBuffer* out, Work work) {
+  return OnPoolDeferred<Request, Response>(
+      call, context, method, needed, in, out,
+      [work = std::move(work)](const Request& request, Response* response, const auto& done) mutable {
+        done(work(request, response));
+      });
 }
 
 // The solvers a stream holds, in the memory budget (Solver::BytesFor each, reserved by the stream) and in the
@@ -127,14 +140,17 @@ inline const grpc::Status kShuttingDown = ShuttingDown();
 
 inline bool CallExpired(const grpc::CallbackServerContext& call) { return std::chrono::system_clock::now() > call.deadline(); }
 
-// The stop check of a rig build a call waits for (its upload, or a rebuild from the cache directory): the
-// client cancelled, the call's deadline passed, or the shutdown's drain is over. Another caller waiting for the
-// same build is not stopped by it (CharacterStore builds it again for them).
-inline StopCheck BuildStop(grpc::CallbackServerContext* call, const ServiceContext& context) {
-  return [call, &context] { return call->IsCancelled() || CallExpired(*call) || context.drain.Passed(); };
+// Whether a call still wants the build it waits for (an upload's, or a rebuild from the cache directory): not
+// cancelled, within its deadline, and the shutdown's drain not over. A build goes on while one of its waiters
+// wants it.
+inline CharacterStore::Wants BuildWants(grpc::CallbackServerContext* call, const ServiceContext& context) {
+  return [call, &context] { return !call->IsCancelled() && !CallExpired(*call) && !context.drain.Passed(); };
 }
 
-// The status of an error from work that built with BuildStop: a stopped build says why it stopped.
+// The response metadata that carries an upload's character id as soon as the pieces are checked.
+inline constexpr char kCharacterIdHeader[] = "springblend-character-id";
+
+// The status of a build's error for a call that waited for it: a stopped build says why it stopped.
 inline grpc::Status BuildStatus(const std::exception& error, grpc::CallbackServerContext* call, const ServiceContext& context) {
   const auto* e = dynamic_cast<const Error*>(&error);
   if (e == nullptr || e->code() != ErrorCode::kCancelled) return ToStatus(error);

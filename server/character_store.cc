@@ -11,12 +11,14 @@
 #include <chrono>
 #include <cstring>
 #include <filesystem>
+#include <future>
 #include <fmt/format.h>
 #include <fstream>
 #include <random>
 #include <unordered_set>
 
 #include "springblend/error.h"
+#include "status.h"
 
 #include <spdlog/spdlog.h>
 
@@ -216,11 +218,8 @@ bool IsCancelled(const std::exception_ptr& error) {
 
 // Waits for another caller's build of the character; throws Error(kCancelled) when this caller's `stop` says
 // stop first (asked every 20 ms).
-void WaitFor(const std::shared_future<std::shared_ptr<const CharacterStore::Entry>>& result, const StopCheck& stop) {
-  if (!stop) return result.wait();
-  while (result.wait_for(std::chrono::milliseconds(20)) != std::future_status::ready) {
-    if (stop()) throw Error(ErrorCode::kCancelled, "stopped waiting for the character's build");
-  }
+double MillisecondsSince(std::chrono::steady_clock::time_point start) {
+  return std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - start).count();
 }
 
 std::string Hex(const std::string& bytes) {
@@ -386,6 +385,60 @@ CharacterStore::CharacterStore(StoreOptions options) : options_(std::move(option
       ::unlink(probe.c_str());
     }
   }
+  if (options_.build_threads < 1 || options_.build_queue < 0) {
+    throw Error(ErrorCode::kInvalidInput, "the store needs at least one build thread and a queue of 0 or more");
+  }
+  builds_ = std::make_unique<SolverPool>(options_.build_threads, options_.build_queue);
+}
+
+CharacterStore::~CharacterStore() { builds_.reset(); }
+
+CharacterStore::PendingBuild::PendingBuild(std::string id, bool from_file, std::string name)
+    : id_(std::move(id)), name_(std::move(name)), created_(std::chrono::steady_clock::now()) {
+  progress_.rig.stage = "queued";
+  progress_.from_file = from_file;
+}
+
+BuildProgress CharacterStore::PendingBuild::progress() const {
+  std::lock_guard lock(mutex_);
+  BuildProgress p = progress_;
+  if (p.rig.stage == "queued") p.rig.elapsed_ms = MillisecondsSince(created_);
+  return p;
+}
+
+void CharacterStore::PendingBuild::Report(const RigBuildProgress& progress) {
+  std::lock_guard lock(mutex_);
+  progress_.rig = progress;
+  // The paths are most of a build, and take about as long per target: the rest is extrapolated from them.
+  if (progress.stage == "paths" && paths_began_ms_ < 0) paths_began_ms_ = progress.elapsed_ms;
+  if (progress.stage == "paths" && progress.targets_done > 0 && progress.targets > 0) {
+    progress_.estimate_ms = paths_began_ms_ + (progress.elapsed_ms - paths_began_ms_) * progress.targets /
+                                                  progress.targets_done;
+  } else if (progress.stage == "done") {
+    progress_.estimate_ms = progress.elapsed_ms;
+  }
+}
+
+void CharacterStore::PendingBuild::OnDone(Done done) {
+  std::unique_lock lock(mutex_);
+  if (!ended_) {
+    done_.push_back(std::move(done));
+    return;
+  }
+  lock.unlock();
+  done(entry_, error_);
+}
+
+void CharacterStore::PendingBuild::End(std::shared_ptr<const Entry> entry, std::exception_ptr error) {
+  std::vector<Done> done;
+  {
+    std::lock_guard lock(mutex_);
+    entry_ = std::move(entry);
+    error_ = error;
+    ended_ = true;
+    done.swap(done_);
+  }
+  for (Done& d : done) d(entry_, error_);
 }
 
 bool CharacterStore::ValidId(const std::string& id) {
@@ -579,11 +632,10 @@ void CharacterStore::Insert(std::shared_ptr<const Entry> entry) {
 }
 
 std::shared_ptr<const CharacterStore::Entry> CharacterStore::Rebuild(const std::string& id, const CacheFile& file,
-                                                                     const StopCheck& stop) {
+                                                                     const RigBuildControl& build) {
   const std::string path = PathOf(id);
   if (!file.precomputed) spdlog::info("cache file {} has no precomputed paths (version 1): rebuilding them", path);
-  RigBuildControl control;
-  control.stop = stop;
+  RigBuildControl control = build;
   control.precomputed = file.precomputed ? &*file.precomputed : nullptr;
   auto entry = Build(id, file.data, control);
   const RigSummary& summary = entry->rig->summary();
@@ -604,86 +656,153 @@ std::shared_ptr<const CharacterStore::Entry> CharacterStore::Rebuild(const std::
 
 std::pair<std::shared_ptr<const CharacterStore::Entry>, bool> CharacterStore::Put(const CharacterData& data,
                                                                                    const StopCheck& stop) {
-  return Acquire(ContentId(data), &data, stop);
+  // Twice at most: a rebuild this joined may find its file corrupt (and remove it); then `data` is built.
+  for (int attempt = 0;; ++attempt) {
+    Found found = Start(data, [&stop] { return !(stop && stop()); });
+    const bool known = found.known;
+    const bool joined = found.building != nullptr;
+    auto entry = Wait(std::move(found), stop);
+    if (entry || !joined || attempt == 1) return {entry, known};
+  }
 }
 
 std::shared_ptr<const CharacterStore::Entry> CharacterStore::Get(const std::string& id, const StopCheck& stop) {
   if (!ValidId(id)) return nullptr;
-  return Acquire(id, nullptr, stop).first;
+  return Wait(Find(id, true, [&stop] { return !(stop && stop()); }), stop);
 }
 
-std::pair<std::shared_ptr<const CharacterStore::Entry>, bool> CharacterStore::Acquire(const std::string& id,
-                                                                                       const CharacterData* data,
-                                                                                       const StopCheck& stop) {
-  std::promise<std::shared_ptr<const Entry>> promise;
-  std::shared_ptr<Flight> flight;
-  {
-    std::unique_lock lock(mutex_);
-    auto it = entries_.find(id);
-    if (it != entries_.end()) {
-      lru_.splice(lru_.begin(), lru_, it->second.position);
-      ++stats_.hits;
-      return {it->second.entry, true};
+std::shared_ptr<const CharacterStore::Entry> CharacterStore::Wait(Found found, const StopCheck& stop) {
+  if (!found.building) return found.entry;
+  auto result = std::make_shared<std::promise<std::shared_ptr<const Entry>>>();
+  auto future = result->get_future();
+  found.building->OnDone([result](const std::shared_ptr<const Entry>& entry, std::exception_ptr error) {
+    if (error) {
+      result->set_exception(error);
+    } else {
+      result->set_value(entry);
     }
-    ++stats_.misses;
-    if (auto other = building_.find(id); other != building_.end()) {
-      // Someone builds it now: wait for that build (it throws here too if it failed), unless this caller stops.
-      auto result = other->second->result;
-      lock.unlock();
-      WaitFor(result, stop);
-      std::shared_ptr<const Entry> entry;
-      try {
-        entry = result.get();
-      } catch (const Error& e) {
-        // Its own caller stopped that build, and this one did not: build it anew (or join whoever does now).
-        if (e.code() != ErrorCode::kCancelled || (stop && stop())) throw;
-        return Acquire(id, data, stop);
-      }
-      if (!entry && data != nullptr) return Acquire(id, data, stop);  // that was a Get that found no file
-      return {entry, true};
-    }
-    flight = std::make_shared<Flight>();
-    flight->result = promise.get_future().share();
-    building_[id] = flight;
+  });
+  while (future.wait_for(std::chrono::milliseconds(stop ? 20 : 1000)) != std::future_status::ready) {
+    if (stop && stop()) throw Error(ErrorCode::kCancelled, "stopped waiting for the character's build");
   }
+  return future.get();
+}
+
+CharacterStore::Found CharacterStore::Find(const std::string& id, bool rebuild, Wants wants) {
+  if (!ValidId(id)) return {};
+  return Lookup(id, nullptr, rebuild, std::move(wants));
+}
+
+CharacterStore::Found CharacterStore::Start(CharacterData data, Wants wants) {
+  const std::string id = ContentId(data);
+  return Lookup(id, &data, true, std::move(wants));
+}
+
+CharacterStore::Found CharacterStore::Lookup(const std::string& id, CharacterData* data, bool rebuild,
+                                             Wants wants) {
+  // Registers the caller as a waiter of `flight` (with the lock held: a build only sees no waiter under it).
+  const auto join = [&wants](const std::shared_ptr<PendingBuild>& flight) {
+    std::lock_guard lock(flight->mutex_);
+    const auto at = flight->waiters_.insert(flight->waiters_.end(), std::move(wants));
+    return Waiter(static_cast<void*>(flight.get()), [flight, at](void*) {
+      std::lock_guard lock(flight->mutex_);
+      flight->waiters_.erase(at);
+    });
+  };
+  Found found;
+  std::shared_ptr<const CharacterData> own;
+  std::unique_lock lock(mutex_);
+  if (auto it = entries_.find(id); it != entries_.end()) {
+    lru_.splice(lru_.begin(), lru_, it->second.position);
+    ++stats_.hits;
+    found.entry = it->second.entry;
+    return found;
+  }
+  ++stats_.misses;
+  if (auto other = building_.find(id); other != building_.end()) {
+    found.building = other->second;
+    found.waiter = join(other->second);
+    return found;
+  }
+  // The file is read (and checked) on the build thread: here only whether there is one.
+  std::error_code ec;
+  const bool on_disk = !options_.directory.empty() && std::filesystem::is_regular_file(PathOf(id), ec);
+  if (!on_disk && data == nullptr) return found;
+  if (on_disk && !rebuild) {
+    found.stored = true;
+    return found;
+  }
+  found.known = on_disk;
+  auto flight = std::make_shared<PendingBuild>(id, on_disk, data != nullptr ? data->name : std::string());
+  // An upload's data is kept even when the file is there: a corrupt file is then built from it.
+  if (data != nullptr) own = std::make_shared<const CharacterData>(std::move(*data));
+  found.building = flight;
+  found.waiter = join(flight);
+  building_[id] = flight;
+  if (!builds_->TrySubmit([this, flight, own] { RunBuild(flight, own); })) {
+    building_.erase(id);
+    throw LimitError(fmt::format("the server's build queue is full ({} builds wait for {} build threads); retry "
+                                 "later or raise --build-queue / --build-workers",
+                                 builds_->queue_depth(), builds_->threads()));
+  }
+  return found;
+}
+
+bool CharacterStore::Abandoned(const std::shared_ptr<PendingBuild>& flight) {
+  if (options_.stop && options_.stop()) return true;
+  std::lock_guard lock(mutex_);
+  {
+    std::lock_guard own(flight->mutex_);
+    for (const Wants& wants : flight->waiters_) {
+      if (!wants || wants()) return false;
+    }
+  }
+  // Nobody wants it: out of building_ now, so whoever comes next starts a build rather than join this one.
+  if (auto it = building_.find(flight->id()); it != building_.end() && it->second == flight) building_.erase(it);
+  return true;
+}
+
+void CharacterStore::RunBuild(const std::shared_ptr<PendingBuild>& flight,
+                              const std::shared_ptr<const CharacterData>& data) {
+  const std::string& id = flight->id();
+  RigBuildControl control;
+  control.stop = [this, flight] { return Abandoned(flight); };
+  control.progress = [flight](const RigBuildProgress& progress) { flight->Report(progress); };
   std::shared_ptr<const Entry> entry;
-  bool known = true;
+  std::exception_ptr error;
+  bool rebuilt = false;
   try {
-    if (const auto file = ReadFile(id)) {
-      entry = Rebuild(id, *file, stop);
-    } else if (data != nullptr) {
-      known = false;
-      RigBuildControl control;
-      control.stop = stop;
+    if (control.stop()) throw Error(ErrorCode::kCancelled, "the rig build was cancelled");
+    if (flight->progress_.from_file) {
+      if (const auto file = ReadFile(id)) {
+        entry = Rebuild(id, *file, control);
+        rebuilt = true;
+      }
+    }
+    if (!entry && data != nullptr) {
       entry = Build(id, *data, control);  // throws Error for bad meshes, or when stopped; nothing is stored then
       WriteFile(id, Serialize(*data), entry->rig->SavePrecomputed());
     }
   } catch (...) {
-    const bool cancelled = IsCancelled(std::current_exception());
-    if (cancelled) spdlog::info("the build of {} was stopped: nothing kept", id.substr(0, 12));
-    {
-      std::lock_guard lock(mutex_);
-      building_.erase(id);
-      if (cancelled) ++stats_.cancelled_builds;
-    }
-    promise.set_exception(std::current_exception());
-    throw;
+    error = std::current_exception();
   }
+  const bool cancelled = error && IsCancelled(error);
+  if (cancelled) spdlog::info("the build of {} was stopped: nothing kept", id.substr(0, 12));
   bool deleted = false;
   {
     std::lock_guard lock(mutex_);
-    building_.erase(id);
-    deleted = flight->deleted;
+    if (auto it = building_.find(id); it != building_.end() && it->second == flight) building_.erase(it);
+    deleted = flight->deleted_;
+    if (cancelled) ++stats_.cancelled_builds;
     if (entry && !deleted) {
-      if (known) ++stats_.rebuilds_from_disk;
+      if (rebuilt) ++stats_.rebuilds_from_disk;
       Insert(entry);
     }
   }
   // A delete that came while this built has removed the file already, or finds none: this build wrote it
   // afterwards. Either way it goes.
   if (deleted && !options_.directory.empty()) RemoveCacheFile(PathOf(id));
-  promise.set_value(entry);
-  return {entry, known};
+  flight->End(std::move(entry), error);
 }
 
 std::vector<CharacterStore::Listed> CharacterStore::List() {
@@ -743,7 +862,7 @@ bool CharacterStore::Delete(const std::string& id) {
     std::lock_guard lock(mutex_);
     verified_.erase(id);
     if (auto flight = building_.find(id); flight != building_.end()) {
-      flight->second->deleted = true;
+      flight->second->deleted_ = true;
       found = true;
     }
     auto it = entries_.find(id);
@@ -763,6 +882,9 @@ StoreStats CharacterStore::stats() const {
   std::lock_guard lock(mutex_);
   StoreStats stats = stats_;
   stats.write_failures = write_failures_.load();
+  stats.build_threads = builds_->threads();
+  stats.builds_running = builds_->busy();
+  stats.builds_queued = builds_->queue_depth();
   return stats;
 }
 

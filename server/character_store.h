@@ -10,10 +10,11 @@
 #pragma once
 
 #include <atomic>
+#include <chrono>
+#include <exception>
 #include <cstdint>
 #include <filesystem>
 #include <functional>
-#include <future>
 #include <list>
 #include <memory>
 #include <mutex>
@@ -22,6 +23,7 @@
 #include <unordered_map>
 #include <vector>
 
+#include "solver_pool.h"
 #include "springblend/rig.h"
 
 namespace springblend::server {
@@ -51,9 +53,25 @@ std::string Serialize(const CharacterData& data);
 CharacterData Deserialize(const std::string& bytes);  // throws Error(kInvalidInput) when malformed
 std::string ContentId(const CharacterData& data);       // hex SHA-256 of Serialize without the name
 
+// Asked while a build runs (RigBuildControl::stop, on the building threads): true ends the build with
+// Error(kCancelled). Empty: never.
+using StopCheck = std::function<bool()>;
+
 struct StoreOptions {
   std::string directory;  // empty: memory only
   std::int64_t memory_budget_bytes = 4LL << 30;
+  // Builds (uploads, and rebuilds from the directory) run on threads of their own, never on a caller's: this
+  // many at once, and this many more waiting for a thread; beyond, a new build is refused (LimitError).
+  int build_threads = 1;
+  int build_queue = 8;
+  StopCheck stop;  // every build stops when it says true (the server's shutdown): asked between path samples
+};
+
+// How a build goes, for whoever waits for it.
+struct BuildProgress {
+  RigBuildProgress rig;      // stage "queued" until a build thread takes it
+  bool from_file = false;    // a rebuild from the cache directory (its paths loaded, not solved)
+  double estimate_ms = 0.0;  // the whole build's expected time, from the paths done so far; 0 while unknown
 };
 
 struct StoreStats {
@@ -64,11 +82,8 @@ struct StoreStats {
   std::int64_t upgraded_files = 0;   // cache files rewritten because their paths were missing (v1) or did not fit
   std::int64_t cancelled_builds = 0;  // builds their stop check ended
   std::int64_t write_failures = 0;    // cache files that could not be written (a read-only or full directory)
+  int build_threads = 0, builds_running = 0, builds_queued = 0;  // the build threads, busy, and builds waiting
 };
-
-// Asked while a build runs (RigBuildControl::stop, on the building threads): true ends the build with
-// Error(kCancelled). Empty: never.
-using StopCheck = std::function<bool()>;
 
 class CharacterStore {
  public:
@@ -80,15 +95,39 @@ class CharacterStore {
   };
 
   explicit CharacterStore(StoreOptions options);
+  ~CharacterStore();  // waits for the builds running (StoreOptions::stop should say stop first); queued ones end
 
-  // Builds (or finds) the character. Returns the entry and whether it was already known. Concurrent Puts and
-  // Gets of one id share one build, which runs with the stop check of the caller that started it; a caller
-  // waiting for another's build stops waiting when its own check says so. When `stop` ends a build, it throws
-  // Error(kCancelled) and nothing is kept (no entry, no file); the callers waiting for that build who did not
-  // stop build it again themselves.
+  // A build in flight, an upload's or a rebuild from the cache directory, shared by everyone who waits for it.
+  // It goes on while at least one of its waiters still wants it (Found::waiter), and stops within a path sample
+  // or Newton iteration once none does, or StoreOptions::stop says so: then it ends with Error(kCancelled)
+  // and nothing is kept (no entry, no file).
+  class PendingBuild;
+  // Someone waiting for a build: dropping it says it does not want the build any more.
+  using Waiter = std::shared_ptr<void>;
+  // Whether a waiter still wants its build (its call is not cancelled and within its deadline). Asked on the
+  // building threads, with the store's lock held: keep it short.
+  using Wants = std::function<bool()>;
+  struct Found {
+    std::shared_ptr<const Entry> entry;        // built, in memory
+    std::shared_ptr<PendingBuild> building;    // being built: wait with PendingBuild::OnDone, holding `waiter`
+    Waiter waiter;
+    bool stored = false;  // Find without rebuild: only in the cache directory
+    bool known = true;    // Start: it was in memory, being built or in the cache directory already
+  };
+  // Never waits for a build. In memory: the entry. Being built: that build. Only in the cache directory: a
+  // rebuild started (`rebuild`), or `stored`. Unknown anywhere: nothing. Throws LimitError when a rebuild is
+  // needed and the build queue is full.
+  Found Find(const std::string& id, bool rebuild, Wants wants);
+  // Never waits for a build: the character as Find finds it (rebuilding from the file when there is one), else
+  // a build of `data` started. Throws LimitError when the build queue is full.
+  Found Start(CharacterData data, Wants wants);
+  // Waits on this thread (for tests and tools; the server never does): the entry of `found`, or the error of
+  // its build; `stop` (asked every 20 ms) ends the wait with Error(kCancelled).
+  static std::shared_ptr<const Entry> Wait(Found found, const StopCheck& stop = {});
+
+  // Start and Wait: the entry, and whether it was already known.
   std::pair<std::shared_ptr<const Entry>, bool> Put(const CharacterData& data, const StopCheck& stop = {});
-  // From memory, else from the directory (rebuilding the rig, with the file's target paths); nullptr if unknown
-  // anywhere. Concurrent calls for one cold id share one rebuild, as Put's do.
+  // Find (rebuilding from the directory) and Wait; nullptr if unknown anywhere.
   std::shared_ptr<const Entry> Get(const std::string& id, const StopCheck& stop = {});
   // Built characters in memory, most recently used first, then those only in the cache directory (listed by
   // id and name without building them: `entry` is null). A file is checked (checksum, id) the first time it
@@ -125,10 +164,15 @@ class CharacterStore {
   std::shared_ptr<const Entry> Build(const std::string& id, const CharacterData& data, const RigBuildControl& control);
   // The rig of a cache file, its paths loaded when the file has them; rewrites a file whose paths were
   // missing or did not fit.
-  std::shared_ptr<const Entry> Rebuild(const std::string& id, const CacheFile& file, const StopCheck& stop);
-  // The one build of `id` in flight: from `data` when given (an upload), else from the cache file.
-  std::pair<std::shared_ptr<const Entry>, bool> Acquire(const std::string& id, const CharacterData* data,
-                                                        const StopCheck& stop);
+  std::shared_ptr<const Entry> Rebuild(const std::string& id, const CacheFile& file, const RigBuildControl& control);
+  // Find and Start: the entry, the build in flight, or a build started (from the file when there is one, else
+  // from `data` when given).
+  Found Lookup(const std::string& id, CharacterData* data, bool rebuild, Wants wants);
+  // On a build thread: the build of `flight`, then its waiters told.
+  void RunBuild(const std::shared_ptr<PendingBuild>& flight, const std::shared_ptr<const CharacterData>& data);
+  // The build's stop check: the store's stop, or no waiter wants it any more (then it is taken out of
+  // building_ at once, so a new caller starts a build of its own rather than join one that is stopping).
+  bool Abandoned(const std::shared_ptr<PendingBuild>& flight);
   void Insert(std::shared_ptr<const Entry> entry);  // caller holds mutex_
   std::string PathOf(const std::string& id) const;
   void WriteFile(const std::string& id, const std::string& payload, const std::string& precomputed) const;
@@ -143,11 +187,7 @@ class CharacterStore {
     std::list<std::string>::iterator position;
   };
   std::unordered_map<std::string, Slot> entries_;
-  struct Flight {
-    std::shared_future<std::shared_ptr<const Entry>> result;
-    bool deleted = false;  // a Delete came while it built: do not keep the result
-  };
-  std::unordered_map<std::string, std::shared_ptr<Flight>> building_;
+  std::unordered_map<std::string, std::shared_ptr<PendingBuild>> building_;
   struct FileStamp {
     std::uintmax_t size = 0;
     std::filesystem::file_time_type modified;
@@ -155,6 +195,36 @@ class CharacterStore {
   std::unordered_map<std::string, FileStamp> verified_;  // cache files List has checked
   StoreStats stats_;
   mutable std::atomic<std::int64_t> write_failures_{0};  // StoreStats::write_failures (WriteFile is const)
+  std::unique_ptr<SolverPool> builds_;  // last: its threads end before the rest goes
+};
+
+class CharacterStore::PendingBuild {
+ public:
+  PendingBuild(std::string id, bool from_file, std::string name);
+  const std::string& id() const { return id_; }
+  const std::string& name() const { return name_; }  // empty for a rebuild from the cache directory
+  BuildProgress progress() const;
+  using Done = std::function<void(const std::shared_ptr<const Entry>& entry, std::exception_ptr error)>;
+  // `done` runs once the build has ended: at once, on this thread, if it has; else on the build's thread, after
+  // the build (keep it short). With the entry (null when a rebuild found its file gone or corrupt) or the error.
+  void OnDone(Done done);
+
+ private:
+  friend class CharacterStore;
+  void Report(const RigBuildProgress& progress);
+  void End(std::shared_ptr<const Entry> entry, std::exception_ptr error);  // tells the waiters, once
+
+  const std::string id_, name_;
+  const std::chrono::steady_clock::time_point created_;
+  mutable std::mutex mutex_;
+  BuildProgress progress_;
+  double paths_began_ms_ = -1.0;  // when the paths stage began (the estimate's origin)
+  std::list<Wants> waiters_;      // Found::waiter erases its own
+  std::vector<Done> done_;
+  bool ended_ = false;
+  std::shared_ptr<const Entry> entry_;
+  std::exception_ptr error_;
+  bool deleted_ = false;  // a Delete came while it built: do not keep the result (the store's mutex_)
 };
 
 }  // namespace springblend::server

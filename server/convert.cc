@@ -371,9 +371,27 @@ CharacterData UploadAssembler::Finish() {
   return std::move(data_);
 }
 
+v1::Character ToProto(const CharacterStore::PendingBuild& build) {
+  v1::Character c;
+  c.set_id(build.id());
+  c.set_name(build.name());
+  c.set_state(v1::CHARACTER_STATE_BUILDING);
+  const BuildProgress p = build.progress();
+  v1::BuildProgress* out = c.mutable_build();
+  out->set_stage(p.rig.stage);
+  out->set_targets(static_cast<std::uint32_t>(p.rig.targets));
+  out->set_targets_done(static_cast<std::uint32_t>(p.rig.targets_done));
+  out->set_path_samples(static_cast<std::uint32_t>(p.rig.samples_done));
+  out->set_elapsed_ms(p.rig.elapsed_ms);
+  out->set_estimate_ms(p.estimate_ms);
+  out->set_from_cache_file(p.from_file);
+  return c;
+}
+
 v1::Character ToProto(const CharacterStore::Entry& entry, bool cache_hit) {
   v1::Character c;
   c.set_id(entry.id);
+  c.set_state(v1::CHARACTER_STATE_READY);
   c.set_name(entry.name);
   c.set_cache_hit(cache_hit);
   for (const auto& t : entry.rig->target_names()) c.add_target_names(t);

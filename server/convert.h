@@ -71,7 +71,8 @@ void CheckId(const std::string& id, const char* field);
 // `max` bytes.
 std::string Printable(std::string_view text, size_t max = 64);
 
-v1::Character ToProto(const CharacterStore::Entry& entry, bool cache_hit);
+v1::Character ToProto(const CharacterStore::Entry& entry, bool cache_hit);  // READY, with the summary
+v1::Character ToProto(const CharacterStore::PendingBuild& build);          // BUILDING, with its progress
 
 // A solve request turned into solver input; throws Error(kInvalidInput) naming the field (frames[3].weights).
 struct SolveJob {

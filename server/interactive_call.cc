@@ -290,8 +290,10 @@ class InteractiveReactor final : public grpc::ServerBidiReactor<grpc::ByteBuffer
     std::unique_lock lock(mutex_);
     if (!ready_) {
       lock.unlock();
-      grpc::Status status = Start();
+      const std::optional<grpc::Status> started = Start();
       lock.lock();
+      if (!started) return;  // waiting for the character's build: solving_ stays, the session is busy
+      const grpc::Status& status = *started;
       if (!status.ok()) {
         solving_ = false;
         Finished(lock, status, std::nullopt, true);
@@ -371,10 +373,29 @@ class InteractiveReactor final : public grpc::ServerBidiReactor<grpc::ByteBuffer
     Finished(lock, status, std::move(answer), false);
   }
 
-  grpc::Status Start() {
+  // The session's setup: nullopt while the character is being built (an upload, or a rebuild from the cache
+  // directory), which the session waits for without holding a worker: the build's end queues RunSolve again.
+  std::optional<grpc::Status> Start() {
     try {
-      CheckId(start_.character_id(), "start.character_id");
-      entry_ = context_.store.Get(start_.character_id(), BuildStop(call_, context_));
+      if (!looked_up_) {
+        looked_up_ = true;
+        CheckId(start_.character_id(), "start.character_id");
+        CharacterStore::Found found = context_.store.Find(start_.character_id(), true, BuildWants(call_, context_));
+        if (found.building) {
+          waiter_ = std::move(found.waiter);
+          found.building->OnDone([this, busy = Busy()](const std::shared_ptr<const CharacterStore::Entry>& entry,
+                                                       std::exception_ptr error) {
+            built_ = entry;
+            build_error_ = error;
+            if (!context_.pool.SubmitContinuation([this, busy] { RunSolve(); })) RunSolve();
+          });
+          return std::nullopt;
+        }
+        built_ = found.entry;
+      }
+      waiter_.reset();
+      if (build_error_) std::rethrow_exception(build_error_);
+      entry_ = built_;
       if (!entry_) return NotFound(start_.character_id());
       memory_.Grow(StreamBytes(start_.colliders()));
       ToOptions(start_.options(), &job_);
@@ -402,6 +423,10 @@ class InteractiveReactor final : public grpc::ServerBidiReactor<grpc::ByteBuffer
   v1::InteractiveRequest incoming_;
   v1::InteractiveStart start_;
   std::shared_ptr<const CharacterStore::Entry> entry_;
+  bool looked_up_ = false;                            // the character asked for (Start)
+  CharacterStore::Waiter waiter_;                     // while it is being built
+  std::shared_ptr<const CharacterStore::Entry> built_;  // the build's result, for the queued RunSolve
+  std::exception_ptr build_error_;
   SolveJob job_;  // options only
   size_t colliders_ = 0;
   std::unique_ptr<Solver> solver_;

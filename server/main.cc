@@ -49,6 +49,11 @@ int main(int argc, char** argv) {
       ->check(CLI::Range(0.05, 1e6));
   app.add_option("--idle-seconds", idle_seconds, "cancel an Interactive session with no message for this long")
       ->check(CLI::Range(0.05, 1e7));
+  app.add_option("--build-workers", o.build_workers,
+                 "threads for rig builds (uploads, rebuilds from --cache-dir), apart from the solver threads")
+      ->check(CLI::Range(1, 64));
+  app.add_option("--build-queue", o.build_queue, "builds waiting for a build thread before RESOURCE_EXHAUSTED")
+      ->check(CLI::Range(0, 100000));
   app.add_option("--metadata-workers", o.metadata_workers,
                  "threads for GetCharacter, ListCharacters and DeleteCharacter, apart from the solver threads")
       ->check(CLI::Range(1, 64));

@@ -68,6 +68,8 @@ void ServerOptions::Validate() const {
   CheckRange("workers", workers, 0, 1024);
   CheckRange("queue", queue, 1, 100'000);
   CheckRange("metadata_workers", metadata_workers, 1, 64);
+  CheckRange("build_workers", build_workers, 1, 64);
+  CheckRange("build_queue", build_queue, 0, 100'000);
   CheckRange("memory_budget_bytes", memory_budget_bytes, 1, std::int64_t{1} << 50);
   CheckRange("request_memory_bytes", request_memory_bytes, 1, std::int64_t{1} << 50);
   CheckRange("max_upload_bytes (--max-upload-bytes)", limits.max_upload_bytes, kMinUploadBytes, kMaxUploadBytes);
@@ -98,7 +100,7 @@ struct Server::State {
       : options(std::move(o)),
         auth(MakeAuthenticator(options)),
         credentials(MakeServerCredentials(options.tls)),
-        store({options.cache_dir, options.memory_budget_bytes}),
+        store(StoreOptionsOf(options, drain)),
         cleanup(store.RemoveStaleTemporaries()),
         memory(options.request_memory_bytes),
         watchdog(options.timeouts),
@@ -109,7 +111,18 @@ struct Server::State {
         characters(context),
         solves(context) {}
 
+  static StoreOptions StoreOptionsOf(const ServerOptions& o, const DrainDeadline& drain) {
+    StoreOptions store;
+    store.directory = o.cache_dir;
+    store.memory_budget_bytes = o.memory_budget_bytes;
+    store.build_threads = o.build_workers;
+    store.build_queue = o.build_queue;
+    store.stop = [&drain] { return drain.Passed(); };  // a build running at shutdown stops once the drain is over
+    return store;
+  }
+
   ServerOptions options;
+  DrainDeadline drain;  // before the store: its builds ask it until the store's threads end
   TokenAuthenticator auth;
   std::shared_ptr<grpc::ServerCredentials> credentials;
   CharacterStore store;
@@ -119,7 +132,6 @@ struct Server::State {
   Watchdog watchdog;
   SolverPool pool;
   SolverPool metadata_pool;
-  DrainDeadline drain;
   ServiceContext context;
   CharacterServiceImpl characters;
   SolveServiceImpl solves;
@@ -253,12 +265,16 @@ std::string Server::MetricsText() const {
         "# TYPE springblend_queue_depth gauge\nspringblend_queue_depth {}\n"
         "# TYPE springblend_workers_busy gauge\nspringblend_workers_busy {}\n"
         "# TYPE springblend_workers gauge\nspringblend_workers {}\n"
+        "# TYPE springblend_build_workers gauge\nspringblend_build_workers {}\n"
+        "# TYPE springblend_build_workers_busy gauge\nspringblend_build_workers_busy {}\n"
+        "# TYPE springblend_build_queue_depth gauge\nspringblend_build_queue_depth {}\n"
         "# TYPE springblend_request_memory_bytes gauge\nspringblend_request_memory_bytes {}\n"
         "# TYPE springblend_request_memory_limit_bytes gauge\nspringblend_request_memory_limit_bytes {}\n"
         "# TYPE springblend_cache_write_failures_total counter\nspringblend_cache_write_failures_total {}\n",
         s.store.hits, s.store.misses, s.store.evictions, s.store.rebuilds_from_disk, s.store.builds,
         s.store.corrupt_files, s.store.paths_loaded, s.store.upgraded_files, s.store.cancelled_builds, s.store.bytes,
-        s.store.characters, s.queue_depth, s.workers_busy, s.workers, s.request_memory_bytes,
+        s.store.characters, s.queue_depth, s.workers_busy, s.workers, s.store.build_threads,
+        s.store.builds_running, s.store.builds_queued, s.request_memory_bytes,
         state_->memory.limit(), s.store.write_failures);
   });
 }

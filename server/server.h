@@ -41,8 +41,12 @@ struct ServerOptions {
 
   std::string cache_dir;                         // uploads, shared by replicas; empty: memory only
   std::int64_t memory_budget_bytes = 4LL << 30;  // built characters in memory (least recently used out first)
-  int workers = 0;                               // solver threads (solves, builds); 0: the core count
+  int workers = 0;                               // solver threads (solves and sessions); 0: the core count
   int queue = 64;                                // jobs waiting for a worker before RESOURCE_EXHAUSTED
+  // Rig builds (uploads, rebuilds from the cache directory) run on threads of their own, never on the solver
+  // threads: this many at once, and this many more queued before RESOURCE_EXHAUSTED.
+  int build_workers = 1;
+  int build_queue = 16;
   int metadata_workers = 2;                      // threads for Get/List/Delete, never behind a solve
   Limits limits;                                 // sizes and counts of requests (over: RESOURCE_EXHAUSTED)
   std::int64_t request_memory_bytes = 2LL << 30;  // uploads in progress and open streams together

@@ -20,24 +20,47 @@ grpc::ServerReadReactor<grpc::ByteBuffer>* CharacterServiceImpl::UploadCharacter
 
 grpc::ServerUnaryReactor* CharacterServiceImpl::GetCharacter(grpc::CallbackServerContext* call,
                                                              const grpc::ByteBuffer* in, grpc::ByteBuffer* out) {
-  return OnPool<v1::GetCharacterRequest, v1::Character>(
+  return OnPoolDeferred<v1::GetCharacterRequest, v1::Character>(
       call, context_, "GetCharacter", Access::kRead, in, out,
-      [this, call](const v1::GetCharacterRequest& request, v1::Character* response) -> grpc::Status {
+      [this, call](const v1::GetCharacterRequest& request, v1::Character* response, const auto& done) {
         CheckId(request.id(), "id");
-        std::shared_ptr<const CharacterStore::Entry> entry;
-        try {
-          entry = context_.store.Get(request.id(), BuildStop(call, context_));
-        } catch (const std::exception& e) {
-          return BuildStatus(e, call, context_);
+        const bool with_faces = request.with_faces();
+        const auto answer = [this, call, response, with_faces, id = request.id()](
+                                const std::shared_ptr<const CharacterStore::Entry>& entry, std::exception_ptr error) {
+          if (error) {
+            try {
+              std::rethrow_exception(error);
+            } catch (const std::exception& e) {
+              return BuildStatus(e, call, context_);
+            }
+          }
+          if (!entry) return NotFound(id);
+          *response = ToProto(*entry, true);
+          response->clear_cache_hit();
+          if (with_faces) {
+            const Faces& faces = entry->rig->rest().faces;
+            response->set_faces(reinterpret_cast<const char*>(faces.data()), sizeof(int) * static_cast<size_t>(faces.size()));
+          }
+          return grpc::Status::OK;
+        };
+        CharacterStore::Found found = context_.store.Find(request.id(), !request.no_wait(), BuildWants(call, context_));
+        if (!found.building || request.no_wait()) {
+          if (found.building) {
+            *response = ToProto(*found.building);
+          } else if (found.stored) {
+            response->set_id(request.id());
+            response->set_state(v1::CHARACTER_STATE_STORED);
+          } else {
+            done(answer(found.entry, nullptr));
+            return;
+          }
+          done(grpc::Status::OK);
+          return;
         }
-        if (!entry) return NotFound(request.id());
-        *response = ToProto(*entry, true);
-        response->clear_cache_hit();
-        if (request.with_faces()) {
-          const Faces& faces = entry->rig->rest().faces;
-          response->set_faces(reinterpret_cast<const char*>(faces.data()), sizeof(int) * static_cast<size_t>(faces.size()));
-        }
-        return grpc::Status::OK;
+        // Waits for the build, holding no worker; the waiter goes with the callback, after it ran.
+        auto waiter = std::make_shared<CharacterStore::Waiter>(std::move(found.waiter));
+        found.building->OnDone([answer, done, waiter](const std::shared_ptr<const CharacterStore::Entry>& entry,
+                                                      std::exception_ptr error) { done(answer(entry, error)); });
       });
 }
 
@@ -54,6 +77,7 @@ grpc::ServerUnaryReactor* CharacterServiceImpl::ListCharacters(grpc::CallbackSer
           } else {  // in the cache directory, not built yet: GetCharacter builds it
             c->set_id(listed.id);
             c->set_name(listed.name);
+            c->set_state(v1::CHARACTER_STATE_STORED);
           }
         }
         return grpc::Status::OK;

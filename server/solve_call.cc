@@ -70,12 +70,38 @@ class SolveReactor final : public grpc::ServerWriteReactor<grpc::ByteBuffer> {
   }
 
  private:
-  // On a pool worker: the request's conversion (its colliders once), then the first frames.
+  // On a pool worker: the character found, or, while it is being built (an upload, or a rebuild from the cache
+  // directory after a restart), the stream waits for the build within its deadline without holding the worker:
+  // the build's end queues Begin.
   void Start() {
+    CharacterStore::Found found;
     try {
       CheckId(request_.character_id(), "character_id");
-      entry_ = context_.store.Get(request_.character_id(), BuildStop(call_, context_));
+      found = context_.store.Find(request_.character_id(), true, BuildWants(call_, context_));
+    } catch (const std::exception& e) {
+      Begin(nullptr, std::current_exception());
+      return;
+    }
+    if (!found.building) {
+      Begin(found.entry, nullptr);
+      return;
+    }
+    waiter_ = std::move(found.waiter);
+    found.building->OnDone([this](const std::shared_ptr<const CharacterStore::Entry>& entry, std::exception_ptr error) {
+      if (!context_.pool.SubmitContinuation([this, entry, error] { Begin(entry, error); })) {
+        Begin(nullptr, std::make_exception_ptr(std::runtime_error("the server is shutting down")));
+      }
+    });
+  }
+
+  // The request's conversion (its colliders once), then the first frames.
+  void Begin(std::shared_ptr<const CharacterStore::Entry> entry, std::exception_ptr error) {
+    waiter_.reset();
+    try {
+      if (error) std::rethrow_exception(error);
+      entry_ = std::move(entry);
       if (!entry_) throw StatusError(NotFound(request_.character_id()));
+      if (Expired()) throw StatusError(DeadlineExceeded("the deadline passed while the character was being built"));
       // The colliders and the converted frames, counted before they are made.
       std::int64_t frames = 0;
       for (const v1::FrameRequest& f : request_.frames()) frames += FrameBytes(f);
@@ -236,6 +262,7 @@ class SolveReactor final : public grpc::ServerWriteReactor<grpc::ByteBuffer> {
   SolverCharge solvers_charge_;
   std::int64_t request_bytes_ = 0;  // the parsed request, counted until converted
   std::shared_ptr<const CharacterStore::Entry> entry_;
+  CharacterStore::Waiter waiter_;  // while the character is being built
   SolveJob job_;
   std::vector<Collider> colliders_;
   std::mutex mutex_;

@@ -1,6 +1,8 @@
 #include <spdlog/spdlog.h>
 
 #include <memory>
+#include <mutex>
+#include <optional>
 
 #include "call_support.h"
 #include "calls.h"
@@ -56,22 +58,73 @@ class UploadReactor final : public grpc::ServerReadReactor<grpc::ByteBuffer> {
     context_.metrics.CountRequest("UploadCharacter", CodeName(status.error_code()));
     Finish(status);
   }
+  // On the metadata pool: the pieces checked and assembled, then the build started on the build pool (or the
+  // character found). The call waits for its build without holding a thread; the id goes out at once as
+  // initial metadata (kCharacterIdHeader), so a client can follow the build with GetCharacter(no_wait).
   void Complete() {
-    const bool queued = context_.pool.TrySubmit([this] {
-      grpc::Status status;
+    const bool queued = context_.metadata_pool.TrySubmit([this] {
+      CharacterStore::Found found;
       try {
-        const auto [entry, known] = context_.store.Put(assembler_.Finish(), BuildStop(call_, context_));
-        *response_ = Serialize(ToProto(*entry, known));
-        spdlog::info("upload {} '{}': {} ({} vertices, {} springs, {:.0f} ms)", entry->id.substr(0, 12),
-                     Printable(entry->name), known ? "cache hit" : "built", entry->rig->num_vertices(),
-                     entry->rig->num_springs(), entry->rig->summary().precompute_ms);
+        found = context_.store.Start(assembler_.Finish(), BuildWants(call_, context_));
+      } catch (const std::exception& e) {
+        Built(nullptr, std::current_exception(), true);
+        return;
+      }
+      if (!found.building) {
+        Built(found.entry, nullptr, true);
+        return;
+      }
+      {
+        std::lock_guard lock(mutex_);
+        waiter_ = std::move(found.waiter);
+        sending_metadata_ = true;
+      }
+      spdlog::info("upload {} '{}': {}", found.building->id().substr(0, 12), Printable(found.building->name()),
+                   found.known ? "rebuilding from the cache directory" : "building");
+      call_->AddInitialMetadata(kCharacterIdHeader, found.building->id());
+      StartSendInitialMetadata();
+      const bool known = found.known;
+      found.building->OnDone([this, known](const std::shared_ptr<const CharacterStore::Entry>& entry,
+                                           std::exception_ptr error) { Built(entry, error, known); });
+    });
+    if (!queued) Done(kQueueFull);
+  }
+  void OnSendInitialMetadataDone(bool) override {
+    std::unique_lock lock(mutex_);
+    sending_metadata_ = false;
+    FinishIfDue(lock);
+  }
+  // The build's end (on its thread, or on the pool when there was none to wait for).
+  void Built(const std::shared_ptr<const CharacterStore::Entry>& entry, std::exception_ptr error, bool known) {
+    grpc::Status status;
+    if (error) {
+      try {
+        std::rethrow_exception(error);
       } catch (const std::exception& e) {
         status = BuildStatus(e, call_, context_);
         spdlog::warn("upload refused: {}", Printable(status.error_message(), 400));
       }
-      Done(status);
-    });
-    if (!queued) Done(kQueueFull);
+    } else if (!entry) {
+      status = ToStatus(Error(ErrorCode::kInternal, "the character's cache file went missing while it was read; upload "
+                                                    "it again"));
+    } else {
+      *response_ = Serialize(ToProto(*entry, known));
+      spdlog::info("upload {} '{}': {} ({} vertices, {} springs, {:.0f} ms)", entry->id.substr(0, 12),
+                   Printable(entry->name), known ? "cache hit" : "built", entry->rig->num_vertices(),
+                   entry->rig->num_springs(), entry->rig->summary().precompute_ms);
+    }
+    std::unique_lock lock(mutex_);
+    waiter_.reset();
+    due_ = status;
+    FinishIfDue(lock);
+  }
+  // Finish once the build is over and the initial metadata (if any) is sent.
+  void FinishIfDue(std::unique_lock<std::mutex>& lock) {
+    if (!due_ || sending_metadata_) return;
+    const grpc::Status status = *due_;
+    due_.reset();
+    lock.unlock();
+    Done(status);
   }
 
   grpc::CallbackServerContext* call_;
@@ -80,6 +133,10 @@ class UploadReactor final : public grpc::ServerReadReactor<grpc::ByteBuffer> {
   std::shared_ptr<Watchdog::Handle> watch_;
   UploadAssembler assembler_;
   grpc::ByteBuffer bytes_;
+  std::mutex mutex_;
+  CharacterStore::Waiter waiter_;  // while the build runs
+  bool sending_metadata_ = false;
+  std::optional<grpc::Status> due_;  // the build ended with it
 };
 
 }  // namespace
