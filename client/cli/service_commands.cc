@@ -113,8 +113,34 @@ Client ClientFor(const std::string& command, const RemoteArgs& args) {
   return Client(OpenChannel(args.connection), CallOptions(command, args.connection));
 }
 
+// The build's progress on stderr while an upload waits: a line when the stage or the targets done change, and
+// at least every 10 s (the JSON answer alone goes to stdout).
+Client::UploadProgress ProgressPrinter() {
+  struct Last {
+    std::string stage;
+    std::uint32_t targets_done = 0;
+    double printed_ms = -1e300;
+  };
+  auto last = std::make_shared<Last>();
+  return [last](const std::string& id, const v1::BuildProgress& p) {
+    if (p.stage() == last->stage && p.targets_done() == last->targets_done && p.elapsed_ms() - last->printed_ms < 10000) {
+      return;
+    }
+    last->stage = p.stage();
+    last->targets_done = p.targets_done();
+    last->printed_ms = p.elapsed_ms();
+    std::string line = fmt::format("building {}: {}", id.substr(0, 12), p.stage());
+    if (p.targets() > 0) line += fmt::format(", target paths {}/{} ({} samples)", p.targets_done(), p.targets(), p.path_samples());
+    line += fmt::format(", {:.0f} s", p.elapsed_ms() / 1000.0);
+    if (p.estimate_ms() > 0) line += fmt::format(" of about {:.0f} s", p.estimate_ms() / 1000.0);
+    if (p.from_cache_file()) line += " (rebuilt from the server's cache directory)";
+    std::cerr << line << std::endl;
+  };
+}
+
 int RunUpload(const RemoteArgs& args) {
   Client client = ClientFor("upload", args);
+  const Client::UploadProgress progress = ProgressPrinter();
   v1::BuildOptions options;
   for (int v : args.fixed) options.add_fixed_vertices(static_cast<std::uint32_t>(v));
   options.set_no_interior(args.no_interior);
@@ -129,7 +155,8 @@ int RunUpload(const RemoteArgs& args) {
     for (int v : rig.fixed_vertices) options.add_fixed_vertices(static_cast<std::uint32_t>(v));
     c = Call("upload", [&] {
       try {
-        return client.UploadRig(rig.rest, rig.targets, options, args.name.empty() ? rig.rest.name : args.name);
+        return client.UploadRig(rig.rest, rig.targets, options, args.name.empty() ? rig.rest.name : args.name,
+                                progress);
       } catch (const ClientError& e) {
         // The server's refusal names the target and the field; say which file they are in.
         throw ClientError(e.code(), fmt::format("{}: {}", rig.path, e.what()));
@@ -142,7 +169,9 @@ int RunUpload(const RemoteArgs& args) {
     TriangleMesh rest = LoadMesh(args.rest);
     std::vector<TriangleMesh> targets;
     for (const auto& t : args.targets) targets.push_back(LoadMesh(t));
-    c = Call("upload", [&] { return client.Upload(rest, targets, options, args.name.empty() ? rest.name : args.name); });
+    c = Call("upload", [&] {
+      return client.Upload(rest, targets, options, args.name.empty() ? rest.name : args.name, progress);
+    });
   }
   std::cout << CharacterJson(c).dump() << std::endl;
   return kExitOk;

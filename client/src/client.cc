@@ -4,6 +4,7 @@
 
 #include <cstring>
 #include <fstream>
+#include <future>
 #include <sstream>
 
 #include <fmt/format.h>
@@ -78,10 +79,11 @@ std::unique_ptr<grpc::ClientContext> Client::Context(const std::string& characte
 }
 
 v1::Character Client::Upload(const TriangleMesh& rest, const std::vector<TriangleMesh>& targets,
-                             const v1::BuildOptions& options, const std::string& name) {
+                             const v1::BuildOptions& options, const std::string& name,
+                             const UploadProgress& progress) {
   std::vector<RigTarget> plain(targets.size());
   for (size_t t = 0; t < targets.size(); ++t) plain[t].mesh = targets[t];
-  return UploadRig(rest, plain, options, name);
+  return UploadRig(rest, plain, options, name, progress);
 }
 
 namespace {
@@ -110,7 +112,8 @@ void CheckTopology(const TriangleMesh& rest, const TriangleMesh& shape) {
 }  // namespace
 
 v1::Character Client::UploadRig(const TriangleMesh& rest, const std::vector<RigTarget>& targets,
-                                const v1::BuildOptions& options, const std::string& name) {
+                                const v1::BuildOptions& options, const std::string& name,
+                                const UploadProgress& progress) {
   std::vector<const TriangleMesh*> shapes = {&rest};  // the POSITIONS arrays, in the proto's shape order
   bool production = false;
   for (const auto& t : targets) {
@@ -172,15 +175,35 @@ v1::Character Client::UploadRig(const TriangleMesh& rest, const std::vector<RigT
          targets[t].mask.size(), 8);
   }
   writer->WritesDone();
-  Check(writer->Finish());
+  if (!progress) {
+    Check(writer->Finish());
+    return response;
+  }
+  // The server names the character in its initial metadata once the pieces are checked; the build's progress
+  // is then polled with GetCharacter(no_wait) while another thread waits for the upload's answer.
+  writer->WaitForInitialMetadata();
+  std::string id;
+  const auto& metadata = context->GetServerInitialMetadata();
+  if (const auto it = metadata.find(kCharacterIdMetadata); it != metadata.end()) id.assign(it->second.data(), it->second.size());
+  auto finished = std::async(std::launch::async, [&writer] { return writer->Finish(); });
+  while (!id.empty() && finished.wait_for(std::chrono::milliseconds(500)) != std::future_status::ready) {
+    try {
+      const v1::Character state = Get(id, false, true);
+      if (state.state() == v1::CHARACTER_STATE_BUILDING) progress(id, state.build());
+    } catch (const ClientError&) {
+      // Progress is best effort: the upload's own answer says how it went.
+    }
+  }
+  Check(finished.get());
   return response;
 }
 
-v1::Character Client::Get(const std::string& id, bool with_faces) {
+v1::Character Client::Get(const std::string& id, bool with_faces, bool no_wait) {
   auto context = Context(id);
   v1::GetCharacterRequest request;
   request.set_id(id);
   request.set_with_faces(with_faces);
+  request.set_no_wait(no_wait);
   v1::Character response;
   Check(characters_->GetCharacter(context.get(), request, &response));
   return response;

@@ -9,6 +9,7 @@
 #include <unistd.h>
 
 #include <chrono>
+#include <thread>
 
 #include "integration/cli_process.h"
 #include "integration/server_process.h"
@@ -165,6 +166,33 @@ TEST_F(CliRemoteTest, ASolveOverItsTimeoutSaysHowManyFramesArrived) {
   EXPECT_THAT(solve.stderr_text, HasSubstr("leave it out: solve has no time limit by default"));
   // The server is fine afterwards.
   EXPECT_EQ(RunCli("health" + remote, dir_).exit_code, 0);
+}
+
+// The face's build takes minutes: the upload prints its progress on stderr as it goes, and, given --timeout,
+// gives up on time with the call named (the server then stops the build nobody waits for).
+TEST_F(CliRemoteTest, UploadShowsTheBuildsProgressAndHonoursItsTimeout) {
+  ServerProcess server(cache_.path().string(), {"--metrics", "127.0.0.1:0"});
+  ASSERT_FALSE(server.address().empty());
+  const std::string remote = " --server " + server.address();
+  const std::string face = " --rest " + DataPath("face/generic_neutral_mesh.obj") + " --target " +
+                           DataPath("face/jawOpen.obj");
+  CliRun upload;
+  const double seconds = SecondsOf([&] { upload = RunCli("upload" + face + " --timeout 8" + remote, dir_); });
+  EXPECT_EQ(upload.exit_code, 4) << upload.stderr_text;
+  EXPECT_LT(seconds, 20.0);
+  EXPECT_THAT(upload.stderr_text, HasSubstr("DEADLINE_EXCEEDED: upload did not finish within --timeout 8 s"));
+  EXPECT_THAT(upload.stderr_text, ::testing::ContainsRegex("building [0-9a-f]{12}: [a-z]+"));
+  EXPECT_TRUE(upload.lines.empty()) << "an upload that gave up printed a character";
+  // Nobody waits for the build any more: it stops.
+  const auto gave_up = std::chrono::steady_clock::now();
+  const auto busy = [&] {
+    const std::string text = testing::HttpGet(server.metrics_port(), "/metrics");
+    return text.find("\nspringblend_build_workers_busy 0\n") == std::string::npos;
+  };
+  while (busy() && std::chrono::steady_clock::now() - gave_up < std::chrono::seconds(10)) {
+    std::this_thread::sleep_for(std::chrono::milliseconds(100));
+  }
+  EXPECT_FALSE(busy()) << "the abandoned build still runs";
 }
 
 TEST_F(CliRemoteTest, RefusalsAreNamedWithAHint) {

@@ -65,6 +65,8 @@ struct RigTarget {
 
 // The metadata header that names the character of a call, so a load balancer can route by it.
 inline constexpr char kCharacterHeader[] = "x-springblend-character";
+// The initial metadata in which the server names an upload's character as soon as its pieces are checked.
+inline constexpr char kCharacterIdMetadata[] = "springblend-character-id";
 
 // A slider session: Send frames as the user moves; Next returns answers as they come (the server answers the
 // newest frame and drops overtaken ones). Close half-closes and drains the remaining answers.
@@ -89,14 +91,21 @@ class Client {
   // settings of its own); options.address and the tls_* fields are then unused, timeout and token apply.
   explicit Client(std::shared_ptr<grpc::Channel> channel, ClientOptions options = {});
 
-  // Uploads the rest mesh and targets (same vertex count and faces) in pieces.
+  // Told how a build goes while an upload waits for it, about twice a second (on the calling thread): the
+  // character's id and the server's BuildProgress (stage, targets and path samples done, elapsed, estimate).
+  using UploadProgress = std::function<void(const std::string& id, const v1::BuildProgress& progress)>;
+  // Uploads the rest mesh and targets (same vertex count and faces) in pieces, and waits for the build.
   v1::Character Upload(const TriangleMesh& rest, const std::vector<TriangleMesh>& targets,
-                       const v1::BuildOptions& options = {}, const std::string& name = "");
+                       const v1::BuildOptions& options = {}, const std::string& name = "",
+                       const UploadProgress& progress = {});
   // A production rig: in-betweens, masks and combinations travel with the meshes (TargetRig in the proto).
   // Solves then take one weight per target that is not a combination, in order.
   v1::Character UploadRig(const TriangleMesh& rest, const std::vector<RigTarget>& targets,
-                          const v1::BuildOptions& options = {}, const std::string& name = "");
-  v1::Character Get(const std::string& id, bool with_faces = false);
+                          const v1::BuildOptions& options = {}, const std::string& name = "",
+                          const UploadProgress& progress = {});
+  // Waits for a character being built (an upload, or a rebuild after a restart); with no_wait answers at once
+  // with its state (READY, BUILDING with build progress, STORED: only in the server's cache directory).
+  v1::Character Get(const std::string& id, bool with_faces = false, bool no_wait = false);
   std::vector<v1::Character> List();
   void Delete(const std::string& id);
   // True when the server's standard health service reports SERVING.
