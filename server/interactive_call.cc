@@ -185,7 +185,7 @@ class InteractiveReactor final : public grpc::ServerBidiReactor<grpc::ByteBuffer
     if (!setup_requested_) {
       setup_requested_ = true;
       solving_ = true;
-      if (!context_.pool.TrySubmit([this, busy = Busy()] { RunSolve(); })) {
+      if (!context_.pool.TrySubmit([this, busy = Busy()] { RunSolve(); }, true)) {
         solving_ = false;
         Clear();
         FinishLocked(lock, kQueueFull);
@@ -209,7 +209,7 @@ class InteractiveReactor final : public grpc::ServerBidiReactor<grpc::ByteBuffer
   // Queues one more job of the session, marking it running; false (the session ends) when the pool refuses.
   bool Submit(std::unique_lock<std::mutex>& lock, bool* running, void (InteractiveReactor::*job)()) {
     *running = true;
-    if (context_.pool.SubmitContinuation([this, job, busy = Busy()] { (this->*job)(); })) return true;
+    if (context_.pool.SubmitContinuation([this, job, busy = Busy()] { (this->*job)(); }, true)) return true;
     *running = false;
     Clear();
     refused_ = kShuttingDown;
@@ -387,7 +387,7 @@ class InteractiveReactor final : public grpc::ServerBidiReactor<grpc::ByteBuffer
                                                        std::exception_ptr error) {
             built_ = entry;
             build_error_ = error;
-            if (!context_.pool.SubmitContinuation([this, busy] { RunSolve(); })) RunSolve();
+            if (!context_.pool.SubmitContinuation([this, busy] { RunSolve(); }, true)) RunSolve();
           });
           return std::nullopt;
         }

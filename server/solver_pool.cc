@@ -15,21 +15,21 @@ SolverPool::~SolverPool() {
   for (auto& w : workers_) w.join();
 }
 
-bool SolverPool::TrySubmit(std::function<void()> job) {
+bool SolverPool::TrySubmit(std::function<void()> job, bool interactive) {
   {
     std::lock_guard lock(mutex_);
-    if (stopping_ || queue_.size() >= capacity_) return false;
-    queue_.push_back(std::move(job));
+    if (stopping_ || queue_.size() + interactive_.size() >= capacity_) return false;
+    (interactive ? interactive_ : queue_).push_back(std::move(job));
   }
   wake_.notify_one();
   return true;
 }
 
-bool SolverPool::SubmitContinuation(std::function<void()> job) {
+bool SolverPool::SubmitContinuation(std::function<void()> job, bool interactive) {
   {
     std::lock_guard lock(mutex_);
     if (stopping_) return false;
-    queue_.push_back(std::move(job));
+    (interactive ? interactive_ : queue_).push_back(std::move(job));
   }
   wake_.notify_one();
   return true;
@@ -37,7 +37,7 @@ bool SolverPool::SubmitContinuation(std::function<void()> job) {
 
 int SolverPool::queue_depth() const {
   std::lock_guard lock(mutex_);
-  return static_cast<int>(queue_.size());
+  return static_cast<int>(queue_.size() + interactive_.size());
 }
 
 int SolverPool::busy() const {
@@ -50,10 +50,11 @@ void SolverPool::Run() {
     std::function<void()> job;
     {
       std::unique_lock lock(mutex_);
-      wake_.wait(lock, [this] { return stopping_ || !queue_.empty(); });
-      if (queue_.empty()) return;  // stopping and drained
-      job = std::move(queue_.front());
-      queue_.pop_front();
+      wake_.wait(lock, [this] { return stopping_ || !queue_.empty() || !interactive_.empty(); });
+      auto& from = !interactive_.empty() ? interactive_ : queue_;
+      if (from.empty()) return;  // stopping and drained
+      job = std::move(from.front());
+      from.pop_front();
       ++busy_;
     }
     job();

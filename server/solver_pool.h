@@ -18,11 +18,13 @@ class SolverPool {
   SolverPool(const SolverPool&) = delete;
   SolverPool& operator=(const SolverPool&) = delete;
 
-  // False when the queue is full or the pool is stopping.
-  bool TrySubmit(std::function<void()> job);
+  // False when the queue is full or the pool is stopping. `interactive` as for SubmitContinuation.
+  bool TrySubmit(std::function<void()> job, bool interactive = false);
   // The next step of work already admitted (a stream's next frame once the previous one is sent): queued
   // even when the queue is full, since refusing it would drop a stream half done. False only when stopping.
-  bool SubmitContinuation(std::function<void()> job);
+  // An `interactive` job (a slider session's) runs before every queued job that is not: a bake's many frames
+  // never stand between an artist and the next answer.
+  bool SubmitContinuation(std::function<void()> job, bool interactive = false);
   int queue_depth() const;
   int busy() const;
   int threads() const { return static_cast<int>(workers_.size()); }
@@ -33,7 +35,8 @@ class SolverPool {
   const size_t capacity_;
   mutable std::mutex mutex_;
   std::condition_variable wake_;
-  std::deque<std::function<void()>> queue_;
+  std::deque<std::function<void()>> queue_;        // in submission order
+  std::deque<std::function<void()>> interactive_;  // before queue_
   int busy_ = 0;
   bool stopping_ = false;
   std::vector<std::thread> workers_;

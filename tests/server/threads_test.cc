@@ -6,6 +6,7 @@
 #include <atomic>
 #include <filesystem>
 #include <fstream>
+#include <future>
 #include <mutex>
 #include <set>
 #include <thread>
@@ -157,6 +158,36 @@ TEST(PoolThreads, EveryAcceptedJobRunsOnceFromManySubmitters) {
   EXPECT_EQ(ran, accepted);
   EXPECT_EQ(static_cast<int>(seen.size()), accepted.load());
   EXPECT_GT(accepted, 0);
+}
+
+// A slider session's jobs run before a bake's queued frames, and each kind keeps its order.
+TEST(PoolThreads, InteractiveJobsRunBeforeQueuedOnesInTheirOrder) {
+  std::mutex mutex;
+  std::vector<std::string> order;
+  std::promise<void> release;
+  std::shared_future<void> released = release.get_future().share();
+  {
+    SolverPool pool(1, 8);
+    std::promise<void> started;
+    ASSERT_TRUE(pool.TrySubmit([&] {
+      started.set_value();
+      released.wait();
+    }));
+    started.get_future().wait();  // the one thread is busy: what follows queues
+    const auto record = [&](std::string name) {
+      return [&, name] {
+        std::lock_guard lock(mutex);
+        order.push_back(name);
+      };
+    };
+    ASSERT_TRUE(pool.TrySubmit(record("bake 1")));
+    ASSERT_TRUE(pool.SubmitContinuation(record("bake 2")));
+    ASSERT_TRUE(pool.TrySubmit(record("slider 1"), true));
+    ASSERT_TRUE(pool.SubmitContinuation(record("slider 2"), true));
+    EXPECT_EQ(pool.queue_depth(), 4);
+    release.set_value();
+  }
+  EXPECT_EQ(order, (std::vector<std::string>{"slider 1", "slider 2", "bake 1", "bake 2"}));
 }
 
 }  // namespace
