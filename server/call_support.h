@@ -63,6 +63,7 @@ grpc::ServerUnaryReactor* OnPoolDeferred(grpc::CallbackServerContext* call, Serv
   SolverPool& pool = context.metadata_pool;
   grpc::ServerUnaryReactor* reactor = call->DefaultReactor();
   Metrics& metrics = context.metrics;
+  const MetricsClock::time_point started = MetricsClock::now();
   if (auto refused = Refused(call, context, method, needed)) {
     reactor->Finish(*refused);
     return reactor;
@@ -74,11 +75,12 @@ grpc::ServerUnaryReactor* OnPoolDeferred(grpc::CallbackServerContext* call, Serv
     reactor->Finish(status);
     return reactor;
   }
-  const bool queued = pool.TrySubmit([reactor, &metrics, method, request, out, work = std::move(work)]() mutable {
+  const bool queued = pool.TrySubmit([reactor, &metrics, method, started, request, out,
+                                      work = std::move(work)]() mutable {
     auto response = std::make_shared<Response>();
-    const auto done = [reactor, &metrics, method, response, out](const grpc::Status& status) {
+    const auto done = [reactor, &metrics, method, started, response, out](const grpc::Status& status) {
       if (status.ok()) *out = Serialize(*response);
-      metrics.CountRequest(method, CodeName(status.error_code()));
+      metrics.CountRequest(method, CodeName(status.error_code()), started);
       reactor->Finish(status);
     };
     try {

@@ -136,7 +136,7 @@ class InteractiveReactor final : public grpc::ServerBidiReactor<grpc::ByteBuffer
   void FinishLocked(std::unique_lock<std::mutex>&, const grpc::Status& status) {
     if (finished_) return;
     finished_ = true;
-    context_.metrics.CountRequest("Interactive", CodeName(status.error_code()));
+    context_.metrics.CountRequest("Interactive", CodeName(status.error_code()), arrived_);
     finish_due_ = status;
   }
   void Act(std::unique_lock<std::mutex>& lock) {
@@ -416,6 +416,8 @@ class InteractiveReactor final : public grpc::ServerBidiReactor<grpc::ByteBuffer
 
   grpc::CallbackServerContext* call_;
   ServiceContext& context_;
+  const MetricsClock::time_point arrived_ = MetricsClock::now();
+  OpenCall open_{context_.metrics.interactive_sessions};
   std::shared_ptr<Watchdog::Handle> watch_;
   Reservation memory_;
   SolverCharge solver_charge_;

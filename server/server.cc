@@ -104,7 +104,7 @@ struct Server::State {
         cleanup(store.RemoveStaleTemporaries()),
         memory(options.request_memory_bytes),
         watchdog(options.timeouts),
-        pool(options.workers, options.queue),
+        pool(options.workers, options.queue, [this](double seconds) { metrics.ObserveQueueWait(seconds); }),
         metadata_pool(options.metadata_workers, options.queue),
         context{store, pool, metadata_pool, options.limits, options.replica_name, metrics, auth, memory, watchdog,
                 drain},
@@ -250,32 +250,42 @@ ServerStats Server::stats() const {
 std::string Server::MetricsText() const {
   return state_->metrics.Render([this] {
     const ServerStats s = stats();
-    return fmt::format(
-        "# TYPE springblend_cache_hits_total counter\nspringblend_cache_hits_total {}\n"
-        "# TYPE springblend_cache_misses_total counter\nspringblend_cache_misses_total {}\n"
-        "# TYPE springblend_cache_evictions_total counter\nspringblend_cache_evictions_total {}\n"
-        "# TYPE springblend_cache_rebuilds_from_disk_total counter\nspringblend_cache_rebuilds_from_disk_total {}\n"
-        "# TYPE springblend_cache_builds_total counter\nspringblend_cache_builds_total {}\n"
-        "# TYPE springblend_cache_corrupt_files_total counter\nspringblend_cache_corrupt_files_total {}\n"
-        "# TYPE springblend_cache_paths_loaded_total counter\nspringblend_cache_paths_loaded_total {}\n"
-        "# TYPE springblend_cache_upgraded_files_total counter\nspringblend_cache_upgraded_files_total {}\n"
-        "# TYPE springblend_cache_cancelled_builds_total counter\nspringblend_cache_cancelled_builds_total {}\n"
-        "# TYPE springblend_cache_bytes gauge\nspringblend_cache_bytes {}\n"
-        "# TYPE springblend_cache_characters gauge\nspringblend_cache_characters {}\n"
-        "# TYPE springblend_queue_depth gauge\nspringblend_queue_depth {}\n"
-        "# TYPE springblend_workers_busy gauge\nspringblend_workers_busy {}\n"
-        "# TYPE springblend_workers gauge\nspringblend_workers {}\n"
-        "# TYPE springblend_build_workers gauge\nspringblend_build_workers {}\n"
-        "# TYPE springblend_build_workers_busy gauge\nspringblend_build_workers_busy {}\n"
-        "# TYPE springblend_build_queue_depth gauge\nspringblend_build_queue_depth {}\n"
-        "# TYPE springblend_request_memory_bytes gauge\nspringblend_request_memory_bytes {}\n"
-        "# TYPE springblend_request_memory_limit_bytes gauge\nspringblend_request_memory_limit_bytes {}\n"
-        "# TYPE springblend_cache_write_failures_total counter\nspringblend_cache_write_failures_total {}\n",
-        s.store.hits, s.store.misses, s.store.evictions, s.store.rebuilds_from_disk, s.store.builds,
-        s.store.corrupt_files, s.store.paths_loaded, s.store.upgraded_files, s.store.cancelled_builds, s.store.bytes,
-        s.store.characters, s.queue_depth, s.workers_busy, s.workers, s.store.build_threads,
-        s.store.builds_running, s.store.builds_queued, s.request_memory_bytes,
-        state_->memory.limit(), s.store.write_failures);
+    std::string out;
+    const auto family = [&out](const char* name, const char* type, const char* help, auto value) {
+      out += fmt::format("# HELP {} {}\n# TYPE {} {}\n{} {}\n", name, help, name, type, name, value);
+    };
+    family("springblend_cache_hits_total", "counter", "Lookups that found the character in memory.", s.store.hits);
+    family("springblend_cache_misses_total", "counter", "Lookups that did not find the character in memory.",
+           s.store.misses);
+    family("springblend_cache_evictions_total", "counter", "Characters dropped from memory for the memory budget.",
+           s.store.evictions);
+    family("springblend_cache_rebuilds_from_disk_total", "counter",
+           "Characters rebuilt from their file in the cache directory.", s.store.rebuilds_from_disk);
+    family("springblend_cache_builds_total", "counter", "Rigs built (uploads and rebuilds, failed ones too).",
+           s.store.builds);
+    family("springblend_cache_corrupt_files_total", "counter", "Cache files refused (bad checksum or id).",
+           s.store.corrupt_files);
+    family("springblend_cache_paths_loaded_total", "counter",
+           "Rebuilds from the cache directory that loaded their target paths from the file.", s.store.paths_loaded);
+    family("springblend_cache_upgraded_files_total", "counter", "Cache files rewritten in the current version.",
+           s.store.upgraded_files);
+    family("springblend_cache_cancelled_builds_total", "counter",
+           "Builds stopped (no waiter wanted them, or shutdown).", s.store.cancelled_builds);
+    family("springblend_cache_bytes", "gauge", "Memory counted for the characters held.", s.store.bytes);
+    family("springblend_cache_characters", "gauge", "Characters held in memory.", s.store.characters);
+    family("springblend_queue_depth", "gauge", "Jobs waiting in the solve pool's queue.", s.queue_depth);
+    family("springblend_workers_busy", "gauge", "Solve pool workers running a job.", s.workers_busy);
+    family("springblend_workers", "gauge", "Solve pool workers.", s.workers);
+    family("springblend_build_workers", "gauge", "Rig build workers.", s.store.build_threads);
+    family("springblend_build_workers_busy", "gauge", "Rig build workers running a build.", s.store.builds_running);
+    family("springblend_build_queue_depth", "gauge", "Rig builds waiting for a build worker.", s.store.builds_queued);
+    family("springblend_request_memory_bytes", "gauge", "Memory counted for requests in flight.",
+           s.request_memory_bytes);
+    family("springblend_request_memory_limit_bytes", "gauge", "The request memory limit (--request-memory-mb).",
+           state_->memory.limit());
+    family("springblend_cache_write_failures_total", "counter", "Cache files that could not be written.",
+           s.store.write_failures);
+    return out;
   });
 }
 

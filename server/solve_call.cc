@@ -141,7 +141,7 @@ class SolveReactor final : public grpc::ServerWriteReactor<grpc::ByteBuffer> {
     if (action == Action::kWrite) {
       StartWrite(&frame_);
     } else if (action == Action::kFinish) {
-      context_.metrics.CountRequest("Solve", CodeName(final_status_.error_code()));
+      context_.metrics.CountRequest("Solve", CodeName(final_status_.error_code()), arrived_);
       Finish(final_status_);
     }
   }
@@ -256,6 +256,8 @@ class SolveReactor final : public grpc::ServerWriteReactor<grpc::ByteBuffer> {
 
   grpc::CallbackServerContext* call_;
   ServiceContext& context_;
+  const MetricsClock::time_point arrived_ = MetricsClock::now();
+  OpenCall open_{context_.metrics.solve_streams};
   v1::SolveRequest request_;
   std::shared_ptr<Watchdog::Handle> watch_;
   Reservation memory_;

@@ -2,7 +2,8 @@
 
 namespace springblend::server {
 
-SolverPool::SolverPool(int threads, int queue_capacity) : capacity_(static_cast<size_t>(queue_capacity)) {
+SolverPool::SolverPool(int threads, int queue_capacity, std::function<void(double)> waited)
+    : capacity_(static_cast<size_t>(queue_capacity)), waited_(std::move(waited)) {
   for (int i = 0; i < threads; ++i) workers_.emplace_back([this] { Run(); });
 }
 
@@ -19,7 +20,7 @@ bool SolverPool::TrySubmit(std::function<void()> job, bool interactive) {
   {
     std::lock_guard lock(mutex_);
     if (stopping_ || queue_.size() + interactive_.size() >= capacity_) return false;
-    (interactive ? interactive_ : queue_).push_back(std::move(job));
+    (interactive ? interactive_ : queue_).push_back({std::move(job), std::chrono::steady_clock::now()});
   }
   wake_.notify_one();
   return true;
@@ -29,7 +30,7 @@ bool SolverPool::SubmitContinuation(std::function<void()> job, bool interactive)
   {
     std::lock_guard lock(mutex_);
     if (stopping_) return false;
-    (interactive ? interactive_ : queue_).push_back(std::move(job));
+    (interactive ? interactive_ : queue_).push_back({std::move(job), std::chrono::steady_clock::now()});
   }
   wake_.notify_one();
   return true;
@@ -47,7 +48,7 @@ int SolverPool::busy() const {
 
 void SolverPool::Run() {
   for (;;) {
-    std::function<void()> job;
+    Job job;
     {
       std::unique_lock lock(mutex_);
       wake_.wait(lock, [this] { return stopping_ || !queue_.empty() || !interactive_.empty(); });
@@ -57,7 +58,8 @@ void SolverPool::Run() {
       from.pop_front();
       ++busy_;
     }
-    job();
+    if (waited_) waited_(std::chrono::duration<double>(std::chrono::steady_clock::now() - job.queued).count());
+    job.run();
     std::lock_guard lock(mutex_);
     --busy_;
   }

@@ -2,6 +2,7 @@
 // queue is full, so an overloaded server answers RESOURCE_EXHAUSTED at once instead of timing everyone out.
 #pragma once
 
+#include <chrono>
 #include <condition_variable>
 #include <deque>
 #include <functional>
@@ -13,7 +14,8 @@ namespace springblend::server {
 
 class SolverPool {
  public:
-  SolverPool(int threads, int queue_capacity);
+  // `waited` (optional) is told, on the worker, how long each job waited in the queue, in seconds.
+  SolverPool(int threads, int queue_capacity, std::function<void(double)> waited = {});
   ~SolverPool();  // finishes queued and running jobs, then joins
   SolverPool(const SolverPool&) = delete;
   SolverPool& operator=(const SolverPool&) = delete;
@@ -30,13 +32,18 @@ class SolverPool {
   int threads() const { return static_cast<int>(workers_.size()); }
 
  private:
+  struct Job {
+    std::function<void()> run;
+    std::chrono::steady_clock::time_point queued;
+  };
   void Run();
 
   const size_t capacity_;
+  const std::function<void(double)> waited_;
   mutable std::mutex mutex_;
   std::condition_variable wake_;
-  std::deque<std::function<void()>> queue_;        // in submission order
-  std::deque<std::function<void()>> interactive_;  // before queue_
+  std::deque<Job> queue_;        // in submission order
+  std::deque<Job> interactive_;  // before queue_
   int busy_ = 0;
   bool stopping_ = false;
   std::vector<std::thread> workers_;

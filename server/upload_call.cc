@@ -55,7 +55,7 @@ class UploadReactor final : public grpc::ServerReadReactor<grpc::ByteBuffer> {
 
  private:
   void Done(const grpc::Status& status) {
-    context_.metrics.CountRequest("UploadCharacter", CodeName(status.error_code()));
+    context_.metrics.CountRequest("UploadCharacter", CodeName(status.error_code()), arrived_);
     Finish(status);
   }
   // On the metadata pool: the pieces checked and assembled, then the build started on the build pool (or the
@@ -85,7 +85,10 @@ class UploadReactor final : public grpc::ServerReadReactor<grpc::ByteBuffer> {
       StartSendInitialMetadata();
       const bool known = found.known;
       found.building->OnDone([this, known](const std::shared_ptr<const CharacterStore::Entry>& entry,
-                                           std::exception_ptr error) { Built(entry, error, known); });
+                                           std::exception_ptr error) {
+        if (entry) context_.metrics.ObserveBuild(entry->rig->summary().precompute_ms / 1000.0);
+        Built(entry, error, known);
+      });
     });
     if (!queued) Done(kQueueFull);
   }
@@ -129,6 +132,7 @@ class UploadReactor final : public grpc::ServerReadReactor<grpc::ByteBuffer> {
 
   grpc::CallbackServerContext* call_;
   ServiceContext& context_;
+  const MetricsClock::time_point arrived_ = MetricsClock::now();
   grpc::ByteBuffer* response_;
   std::shared_ptr<Watchdog::Handle> watch_;
   UploadAssembler assembler_;
