@@ -13,7 +13,11 @@
 #include <algorithm>
 #include <atomic>
 #include <cmath>
+#include <cstring>
 #include <fstream>
+#include <map>
+#include <set>
+#include <sstream>
 #include <thread>
 
 #include "integration/server_process.h"
@@ -308,6 +312,118 @@ TEST(ServerMetrics, ThePrometheusPageShowsTheCountersMoving) {
   EXPECT_THAT(after, HasSubstr("springblend_cache_characters 1"));
   EXPECT_THAT(after, ::testing::ContainsRegex("springblend_cache_hits_total [1-9]"));
   EXPECT_THAT(HttpGet(server.metrics_port(), "/elsewhere"), HasSubstr("404"));
+}
+
+// The value of one series ("name" or "name{labels}") on a scraped page; -1 when it is not there.
+double SeriesValue(const std::string& page, const std::string& series) {
+  const std::string key = "\n" + series + " ";
+  const auto at = page.find(key);
+  if (at == std::string::npos) return -1;
+  return std::stod(page.substr(at + key.size(), page.find('\n', at + key.size()) - at - key.size()));
+}
+
+// Every sample's family has "# HELP" and then "# TYPE" before its first sample; returns those that do not.
+std::string FamiliesWithoutHelpAndType(const std::string& page) {
+  std::map<std::string, std::string> types;  // family -> type, once its HELP and TYPE were seen in order
+  std::set<std::string> helped, missing;
+  std::istringstream lines(page.substr(page.find("\r\n\r\n") + 4));
+  for (std::string line; std::getline(lines, line);) {
+    std::istringstream words(line);
+    std::string hash, kind, name;
+    if (line.rfind("# HELP ", 0) == 0) {
+      words >> hash >> kind >> name;
+      helped.insert(name);
+    } else if (line.rfind("# TYPE ", 0) == 0) {
+      std::string type;
+      words >> hash >> kind >> name >> type;
+      if (helped.count(name) != 0) types[name] = type;
+    } else if (!line.empty()) {
+      std::string family = line.substr(0, line.find_first_of("{ "));
+      for (const char* suffix : {"_bucket", "_sum", "_count"}) {
+        const std::string base = family.substr(0, family.size() - std::min(family.size(), std::strlen(suffix)));
+        if (family.size() > base.size() && family.substr(base.size()) == suffix && types[base] == "histogram") {
+          family = base;
+        }
+      }
+      if (types.count(family) == 0) missing.insert(family);
+    }
+  }
+  std::string names;
+  for (const std::string& name : missing) names += name + " ";
+  return names;
+}
+
+TEST(ServerMetrics, EveryFamilyHasHelpAndTheCallStreamBuildQueueAndProcessFamiliesMove) {
+  TempDir cache;
+  ServerProcess server(cache.path().string(), {"--metrics", "127.0.0.1:0", "--workers", "1"});
+  ASSERT_GT(server.metrics_port(), 0);
+  const int port = server.metrics_port();
+  Client client({server.address()});
+  const std::string before = HttpGet(port, "/metrics");
+  EXPECT_EQ(FamiliesWithoutHelpAndType(before), "");
+  for (const char* family : {"process_resident_memory_bytes", "process_open_fds", "process_threads",
+                             "process_start_time_seconds", "springblend_solve_streams 0",
+                             "springblend_interactive_sessions 0", "springblend_build_seconds_count 0",
+                             "springblend_queue_wait_seconds_bucket{le=\"300\"}",
+                             "springblend_solve_seconds_bucket{le=\"5\"}",
+                             "springblend_solve_seconds_bucket{le=\"60\"}"}) {
+    EXPECT_THAT(before, HasSubstr(std::string("\n") + family)) << family;
+  }
+  EXPECT_GT(SeriesValue(before, "process_resident_memory_bytes"), 1e6);
+  EXPECT_GT(SeriesValue(before, "process_open_fds"), 3);
+  EXPECT_GT(SeriesValue(before, "process_threads"), 1);
+  const double now = std::chrono::duration<double>(std::chrono::system_clock::now().time_since_epoch()).count();
+  EXPECT_NEAR(SeriesValue(before, "process_start_time_seconds"), now, 120);
+
+  CylinderRig cylinder;
+  const v1::Character c = client.Upload(cylinder.rest, cylinder.targets);
+  client.Solve(SweepRequest(c.id(), 4, {0.5, 0.5}), [](const v1::SolvedFrame&) {});
+  const std::string after = HttpGet(port, "/metrics");
+  EXPECT_EQ(FamiliesWithoutHelpAndType(after), "");
+  const std::string upload = R"(grpc_type="client_stream",grpc_service="springblend.v1.CharacterService",)"
+                             R"(grpc_method="UploadCharacter")";
+  const std::string solve = R"(grpc_type="server_stream",grpc_service="springblend.v1.SolveService",)"
+                            R"(grpc_method="Solve")";
+  EXPECT_EQ(SeriesValue(after, "grpc_server_handled_total{" + upload + ",grpc_code=\"OK\"}"), 1);
+  EXPECT_EQ(SeriesValue(after, "grpc_server_handled_total{" + solve + ",grpc_code=\"OK\"}"), 1);
+  EXPECT_EQ(SeriesValue(after, "grpc_server_handling_seconds_count{" + solve + "}"), 1);
+  EXPECT_EQ(SeriesValue(after, "grpc_server_handling_seconds_count{" + upload + "}"), 1);
+  EXPECT_EQ(SeriesValue(after, "grpc_server_handling_seconds_bucket{" + solve + ",le=\"1800\"}"), 1);
+  EXPECT_EQ(SeriesValue(after, "springblend_build_seconds_count"), 1);
+  EXPECT_GT(SeriesValue(after, "springblend_build_seconds_sum"), 0);
+  EXPECT_GE(SeriesValue(after, "springblend_queue_wait_seconds_count"), 5);  // the stream's start and its frames
+  EXPECT_EQ(SeriesValue(after, "springblend_solve_seconds_count"), 4);
+
+  // A long stream not read for a moment is open; once cancelled and gone, it is not.
+  {
+    auto channel = grpc::CreateChannel(server.address(), grpc::InsecureChannelCredentials());
+    auto stub = v1::SolveService::NewStub(channel);
+    grpc::ClientContext context;
+    auto reader = stub->Solve(&context, SweepRequest(c.id(), 2000, {1, 1}));
+    v1::SolvedFrame frame;
+    ASSERT_TRUE(reader->Read(&frame));
+    std::this_thread::sleep_for(std::chrono::milliseconds(200));
+    EXPECT_EQ(SeriesValue(HttpGet(port, "/metrics"), "springblend_solve_streams"), 1);
+    context.TryCancel();
+    while (reader->Read(&frame)) {
+    }
+    EXPECT_EQ(reader->Finish().error_code(), grpc::StatusCode::CANCELLED);
+  }
+  double open = -1;
+  for (int i = 0; i < 100 && open != 0; ++i) {
+    std::this_thread::sleep_for(std::chrono::milliseconds(100));
+    open = SeriesValue(HttpGet(port, "/metrics"), "springblend_solve_streams");
+  }
+  EXPECT_EQ(open, 0);
+  const std::string last = HttpGet(port, "/metrics");
+  EXPECT_EQ(SeriesValue(last, "grpc_server_handled_total{" + solve + ",grpc_code=\"CANCELLED\"}"), 1);
+  EXPECT_EQ(SeriesValue(last, "grpc_server_handling_seconds_count{" + solve + "}"), 2);
+
+  // Operators open the port in a browser: the root points at /metrics; other paths are not found.
+  const std::string root = HttpGet(port, "/");
+  EXPECT_THAT(root, HasSubstr("HTTP/1.0 200 OK"));
+  EXPECT_THAT(root, HasSubstr("href=\"/metrics\""));
+  EXPECT_THAT(HttpGet(port, "/elsewhere"), HasSubstr("404"));
 }
 
 }  // namespace
