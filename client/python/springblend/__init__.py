@@ -1,7 +1,8 @@
 """springblend: the Python client of the springblend farm server (physically based blendshapes).
 
 Needs only Debian's python3-grpcio, python3-protobuf and python3-numpy, so it runs inside a DCC's Python.
-Put the build's python directory (build/release/python) on sys.path, then:
+Install it (pip install client/python, docs/python.md) or put the build's python directory
+(build/release/python) on sys.path, then:
 
     import springblend
     with springblend.Client("127.0.0.1:50051") as client:
@@ -13,11 +14,16 @@ Put the build's python directory (build/release/python) on sys.path, then:
         face = client.upload_rig("face/rig.json")  # in-betweens, masks, combinations (springblend.rigfile)
 """
 
-from springblend import colliders, pointcache, rigfile
-from springblend._version import __version__
-from springblend._generated import pb
-from springblend.client import CHARACTER_HEADER, Client, InteractiveSession, Solution, SolvedFrame
-from springblend.errors import SpringblendError
+from springblend import _dependencies
 
-__all__ = ["CHARACTER_HEADER", "Client", "InteractiveSession", "Solution", "SolvedFrame", "SpringblendError",
-           "__version__", "colliders", "pb", "pointcache", "rigfile"]
+_dependencies.check()  # a missing numpy, grpcio or protobuf is named, with how to install it
+
+from springblend import colliders, pointcache, rigfile  # noqa: E402
+from springblend._version import __version__  # noqa: E402
+from springblend._generated import pb  # noqa: E402
+from springblend.client import (  # noqa: E402
+    CHARACTER_HEADER, CHARACTER_ID_METADATA, Client, InteractiveSession, Solution, SolvedFrame)
+from springblend.errors import SpringblendError  # noqa: E402
+
+__all__ = ["CHARACTER_HEADER", "CHARACTER_ID_METADATA", "Client", "InteractiveSession", "Solution", "SolvedFrame",
+           "SpringblendError", "__version__", "colliders", "pb", "pointcache", "rigfile"]

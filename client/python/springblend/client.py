@@ -7,6 +7,7 @@ as numpy arrays in the rest mesh's vertex order.
 import dataclasses
 import os
 import queue
+import threading
 import typing
 
 import grpc
@@ -19,6 +20,11 @@ from springblend.errors import SpringblendError, invalid_argument
 # The metadata header that names the character of a call, so a load balancer can route by it (the C++
 # client's kCharacterHeader).
 CHARACTER_HEADER = "x-springblend-character"
+# The initial metadata of an upload that names its character once the pieces are checked (the C++ client's
+# kCharacterIdMetadata): the build can be followed with GetCharacter(no_wait) from then on.
+CHARACTER_ID_METADATA = "springblend-character-id"
+# Seconds between two looks at a build's progress (the C++ client's and the CLI's).
+PROGRESS_INTERVAL = 0.5
 
 # The environment variables the CLI reads too: the server's address when none is given, and the token.
 SERVER_VARIABLE = "SPRINGBLEND_SERVER"
@@ -112,7 +118,7 @@ class Client:
     # Characters
 
     def upload(self, rest, faces, targets, target_names=None, name="", fixed_vertices=(), static_tolerance=0.0,
-               no_interior=False, no_anchor=False, bending_stiffness=0.0, no_target_paths=False):
+               no_interior=False, no_anchor=False, bending_stiffness=0.0, no_target_paths=False, on_progress=None):
         """Uploads a character and returns its Character message (id, cache_hit, summary, target_names).
 
         Args:
@@ -123,6 +129,11 @@ class Client:
             name: a label for people (not part of the id).
             fixed_vertices, static_tolerance, no_interior, no_anchor, bending_stiffness, no_target_paths: the rig
                 builder's BuildOptions (zero values mean the server's defaults).
+            on_progress: None, or a function called as on_progress(character_id, progress) about twice a second
+                while the server builds the character, progress being a BuildProgress message (stage, targets,
+                targets_done, path_samples, elapsed_ms, estimate_ms, from_cache_file). It runs on the calling
+                thread; an exception it raises cancels the upload (the server then stops the build) and goes
+                up to the caller. A build takes from a second (the cylinder) to minutes (a face).
         """
         if isinstance(targets, dict):
             target_names, targets = list(targets.keys()), list(targets.values())
@@ -145,14 +156,14 @@ class Client:
                                   no_target_paths=bool(no_target_paths))
         header = pb.UploadHeader(name=name, vertex_count=len(rest), face_count=len(faces),
                                  target_names=[str(n) for n in target_names], options=options)
-        return self._upload(header, faces, shapes_, {})
+        return self._upload(header, faces, shapes_, {}, on_progress)
 
-    def upload_rig(self, rig, name="", fixed_vertices=(), **options):
+    def upload_rig(self, rig, name="", fixed_vertices=(), on_progress=None, **options):
         """Uploads a production rig (springblend.rigfile.Rig, or the path of a rig file): targets with
         in-betweens, masks and combinations. Solves then take one weight per target that is not a combination
         (rig.weight_names). The server's refusals ("target 'jawOpen': inbetweens[1].weight ...") get the rig
         file's path in front. options: static_tolerance, no_interior, no_anchor, bending_stiffness,
-        no_target_paths, as for upload."""
+        no_target_paths, and on_progress, as for upload."""
         if isinstance(rig, (str, bytes)) or hasattr(rig, "__fspath__"):
             rig = rigfile.load_rig(rig)
         rest = arrays.as_points(rig.rest, "rest")
@@ -178,7 +189,7 @@ class Client:
                                  target_names=[t.name for t in rig.targets], targets=specs,
                                  options=pb.BuildOptions(fixed_vertices=fixed, **options))
         try:
-            return self._upload(header, faces, shapes_ + inbetweens, masks)
+            return self._upload(header, faces, shapes_ + inbetweens, masks, on_progress)
         except SpringblendError as error:
             raise SpringblendError(error.code, f"{rig.path}: {error.message}") from None
 
@@ -189,9 +200,9 @@ class Client:
             raise invalid_argument(f"{what}: {len(points)} vertices, but the rest mesh has {len(rest)}")
         return points
 
-    def _upload(self, header, faces, shapes_, masks):
+    def _upload(self, header, faces, shapes_, masks, on_progress=None):
         """Streams the header, the faces, every shape's positions (rest, targets, in-betweens) and the masks
-        ({target index: float64 bytes})."""
+        ({target index: float64 bytes}); with on_progress, follows the build while the call waits."""
         def chunks():
             yield pb.UploadChunk(header=header)
             yield from self._pieces(pb.MeshPiece.FACES, 0, faces.tobytes(), len(faces), 12)
@@ -200,7 +211,38 @@ class Client:
             for target, data in masks.items():
                 yield from self._pieces(pb.MeshPiece.MASK, target, data, len(data) // 8, 8)
 
-        return self._call(self._characters.UploadCharacter, chunks())
+        if on_progress is None:
+            return self._call(self._characters.UploadCharacter, chunks())
+        try:
+            call = self._characters.UploadCharacter.future(chunks(), timeout=self.timeout,
+                                                           metadata=self._metadata(""))
+        except grpc.RpcError as error:
+            raise self._error(error) from None
+        try:
+            self._follow_build(call, on_progress)
+            return call.result()
+        except grpc.RpcError as error:
+            raise self._error(error) from None
+        finally:
+            call.cancel()  # a no-op once the call has ended; otherwise (the callback raised) the build stops
+
+    def _follow_build(self, call, on_progress):
+        """Calls on_progress while the upload's build runs, as the C++ client's UploadRig does: the character's
+        id arrives as initial metadata once the server has checked the pieces (not at all when it refuses
+        them), then GetCharacter(no_wait) answers with the build's progress at once."""
+        ended = threading.Event()
+        call.add_done_callback(lambda _: ended.set())
+        character_id = dict(call.initial_metadata() or ()).get(CHARACTER_ID_METADATA, "")
+        if isinstance(character_id, bytes):
+            character_id = character_id.decode()
+        request = pb.GetCharacterRequest(id=character_id, no_wait=True)
+        while character_id and not ended.wait(PROGRESS_INTERVAL):
+            try:
+                state = self._characters.GetCharacter(request, timeout=5.0, metadata=self._metadata(character_id))
+            except grpc.RpcError:
+                continue  # progress is best effort: the upload's own answer says how it went
+            if state.state == pb.CHARACTER_STATE_BUILDING and not ended.is_set():
+                on_progress(character_id, state.build)
 
     def _pieces(self, kind, shape, data, elements, size):
         per_piece = max(1, self.piece_bytes // size)
@@ -209,10 +251,13 @@ class Client:
             piece = pb.MeshPiece(kind=kind, shape=shape, offset=first, data=data[first * size:(first + count) * size])
             yield pb.UploadChunk(piece=piece)
 
-    def get(self, character_id, with_faces=False):
-        """The Character message of an uploaded character; with_faces adds its packed triangles."""
+    def get(self, character_id, with_faces=False, no_wait=False):
+        """The Character message of an uploaded character; with_faces adds its packed triangles. It waits for a
+        character being built (within the timeout); no_wait answers at once with its state: READY with the
+        summary, BUILDING with the build's progress (.build), or STORED (only in the server's cache directory)."""
         return self._call(self._characters.GetCharacter,
-                          pb.GetCharacterRequest(id=character_id, with_faces=with_faces), character_id)
+                          pb.GetCharacterRequest(id=character_id, with_faces=with_faces, no_wait=no_wait),
+                          character_id)
 
     def faces(self, character_id):
         """The character's triangles as a #F by 3 int32 array."""
