@@ -419,6 +419,30 @@ TEST(ServerMetrics, EveryFamilyHasHelpAndTheCallStreamBuildQueueAndProcessFamili
   EXPECT_EQ(SeriesValue(last, "grpc_server_handled_total{" + solve + ",grpc_code=\"CANCELLED\"}"), 1);
   EXPECT_EQ(SeriesValue(last, "grpc_server_handling_seconds_count{" + solve + "}"), 2);
 
+  // An Interactive session is open from its start to its end.
+  {
+    v1::InteractiveStart start;
+    start.set_character_id(c.id());
+    auto session = client.StartInteractive(start);
+    v1::FrameRequest frame;
+    frame.add_weights(0.5);
+    frame.add_weights(0.0);
+    ASSERT_TRUE(session->Send(frame));
+    v1::SolvedFrame answer;
+    ASSERT_TRUE(session->Next(&answer));
+    EXPECT_EQ(SeriesValue(HttpGet(port, "/metrics"), "springblend_interactive_sessions"), 1);
+    session->Close();
+    while (session->Next(&answer)) {
+    }
+    session->Finish();
+  }
+  open = -1;
+  for (int i = 0; i < 100 && open != 0; ++i) {
+    std::this_thread::sleep_for(std::chrono::milliseconds(100));
+    open = SeriesValue(HttpGet(port, "/metrics"), "springblend_interactive_sessions");
+  }
+  EXPECT_EQ(open, 0);
+
   // Operators open the port in a browser: the root points at /metrics; other paths are not found.
   const std::string root = HttpGet(port, "/");
   EXPECT_THAT(root, HasSubstr("HTTP/1.0 200 OK"));
