@@ -402,7 +402,7 @@ CharacterStore::PendingBuild::PendingBuild(std::string id, bool from_file, std::
 BuildProgress CharacterStore::PendingBuild::progress() const {
   std::lock_guard lock(mutex_);
   BuildProgress p = progress_;
-  if (p.rig.stage == "queued") p.rig.elapsed_ms = MillisecondsSince(created_);
+  p.rig.elapsed_ms = MillisecondsSince(created_);  // now, not at the last report (a stage can take minutes)
   return p;
 }
 
@@ -813,6 +813,11 @@ std::vector<CharacterStore::Listed> CharacterStore::List() {
     for (const auto& id : lru_) {
       const auto& entry = entries_[id].entry;
       out.push_back({id, entry->name, entry});
+      seen.insert(id);
+    }
+    for (const auto& [id, flight] : building_) {
+      if (seen.count(id) != 0) continue;
+      out.push_back({id, flight->name(), nullptr, flight});
       seen.insert(id);
     }
   }

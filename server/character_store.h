@@ -129,12 +129,13 @@ class CharacterStore {
   std::pair<std::shared_ptr<const Entry>, bool> Put(const CharacterData& data, const StopCheck& stop = {});
   // Find (rebuilding from the directory) and Wait; nullptr if unknown anywhere.
   std::shared_ptr<const Entry> Get(const std::string& id, const StopCheck& stop = {});
-  // Built characters in memory, most recently used first, then those only in the cache directory (listed by
-  // id and name without building them: `entry` is null). A file is checked (checksum, id) the first time it
-  // is listed; a corrupt one is removed, logged, and not listed.
+  // Built characters in memory, most recently used first, then those being built, then those only in the cache
+  // directory (listed by id and name without building them: `entry` is null). A file is checked (checksum, id)
+  // the first time it is listed; a corrupt one is removed, logged, and not listed.
   struct Listed {
     std::string id, name;
     std::shared_ptr<const Entry> entry;
+    std::shared_ptr<PendingBuild> building;  // being built (then `entry` is null; `name` empty for a rebuild)
   };
   std::vector<Listed> List();
   // Removes the character from memory and the directory. A build of it in flight (an upload, or a rebuild

@@ -74,6 +74,8 @@ grpc::ServerUnaryReactor* CharacterServiceImpl::ListCharacters(grpc::CallbackSer
           if (listed.entry) {
             *c = ToProto(*listed.entry, true);
             c->clear_cache_hit();
+          } else if (listed.building) {
+            *c = ToProto(*listed.building);
           } else {  // in the cache directory, not built yet: GetCharacter builds it
             c->set_id(listed.id);
             c->set_name(listed.name);

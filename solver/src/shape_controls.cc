@@ -66,6 +66,25 @@ void RigBuilder::ExpandSpecs(std::vector<TargetSpec> specs) {
     index[spec.name] = spec.combination.empty() ? static_cast<int>(rig.target_names_.size()) : -1;
     if (spec.combination.empty()) rig.target_names_.push_back(spec.name);
   }
+  // How far a shape may take a vertex from the rest shape (its mask included): a target farther off than
+  // kMaxTargetReach diagonals is an export or unit error, and would cost its path minutes of solving.
+  const double diagonal = BoundingBoxDiagonal(rig.rest_.vertices);
+  const auto check_reach = [&](const TargetSpec& spec, const TriangleMesh& mesh, const std::string& what) {
+    if (mesh.vertices.rows() != n || !(diagonal > 0.0)) return;  // the topology check names those
+    for (Eigen::Index v = 0; v < n; ++v) {
+      const double scale = spec.mask.empty() || static_cast<Eigen::Index>(spec.mask.size()) != n
+                               ? 1.0
+                               : std::abs(spec.mask[static_cast<size_t>(v)]);
+      const double reach = scale * (mesh.vertices.row(v) - rig.rest_.vertices.row(v)).norm();
+      if (std::isfinite(reach) && reach > kMaxTargetReach * diagonal) {  // the mesh checks name non-finite ones
+        Fail(spec.name, fmt::format("{}vertex {} moves {:.6g} from the rest shape{}, more than {:g} times the rest "
+                                    "mesh's bounding-box diagonal ({:.6g}): a target this far off is an export or "
+                                    "unit error",
+                                    what, v, reach, scale != 1.0 ? fmt::format(" (with its mask {:g})", scale) : "",
+                                    kMaxTargetReach, diagonal));
+      }
+    }
+  };
   // Shapes: the targets at 1 (shape t = target t), then their in-betweens, then the combinations.
   std::vector<TriangleMesh> shapes;
   std::vector<std::vector<double>> masks;
@@ -86,6 +105,10 @@ void RigBuilder::ExpandSpecs(std::vector<TargetSpec> specs) {
                                       spec.mask[v], kMaxTargetWeight));
         }
       }
+    }
+    check_reach(spec, spec.mesh, "");
+    for (size_t i = 0; i < spec.inbetweens.size(); ++i) {
+      check_reach(spec, spec.inbetweens[i].mesh, fmt::format("inbetweens[{}]: ", i));
     }
     if (!spec.combination.empty()) continue;
     const int t = index[spec.name];

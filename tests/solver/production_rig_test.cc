@@ -270,6 +270,44 @@ TEST(ProductionRig, BadSpecsAreRefusedNamingTargetAndField) {
 // The weights a frame may give (ValidateWeights, which Solve, the blend helpers and the CLI's local blend call):
 // each within +-kMaxTargetWeight, a combination's product of them too, and the shapes' effective weights (an
 // in-between extrapolates with its last segment's slope) within +-kMaxShapeWeight.
+// A target (or in-between), times its mask, that takes a vertex more than kMaxTargetReach diagonals from the
+// rest shape is refused before any spring is built (a mask of -1000 made one tiny upload solve for 100 s).
+TEST(ProductionRig, TargetsFarOutsideTheRestShapeAreRefusedNamingTargetAndVertex) {
+  const TriangleMesh rest = Rest("cylinder/cylinder.obj");
+  const double diagonal = BoundingBoxDiagonal(rest.vertices);
+  const auto build = [&](std::vector<TargetSpec> specs) {
+    return CatchError([&] { Rig::Build(rest, std::move(specs)); });
+  };
+  {
+    std::vector<TargetSpec> specs;
+    specs.push_back(Spec("bend", "cylinder/poses-2_cylinder-4.obj"));
+    specs[0].mesh.vertices(7, 1) += 20 * diagonal;
+    EXPECT_THAT(build(std::move(specs)).what(),
+                AllOf(HasSubstr("target 'bend': vertex 7 moves"), HasSubstr("more than 10 times the rest mesh's "
+                                                                             "bounding-box diagonal")));
+  }
+  {
+    std::vector<TargetSpec> specs;
+    specs.push_back(Spec("bend", "cylinder/poses-2_cylinder-4.obj"));
+    specs[0].mask.assign(static_cast<size_t>(rest.vertices.rows()), -1000.0);  // within the mask's own bound
+    EXPECT_THAT(build(std::move(specs)).what(), AllOf(HasSubstr("target 'bend': vertex"), HasSubstr("with its mask 1000")));
+  }
+  {
+    std::vector<TargetSpec> specs;
+    specs.push_back(Spec("bend", "cylinder/poses-2_cylinder-4.obj"));
+    specs[0].inbetweens.push_back({0.5, LoadMesh(DataPath("cylinder/poses-2_cylinder-2.obj"))});
+    specs[0].inbetweens[0].mesh.vertices.row(3).array() -= 50 * diagonal;
+    EXPECT_THAT(build(std::move(specs)).what(), HasSubstr("target 'bend': inbetweens[0]: vertex 3 moves"));
+  }
+  // A large but sane move (a limb swung across the body) is accepted.
+  std::vector<TargetSpec> specs;
+  specs.push_back(Spec("bend", "cylinder/poses-2_cylinder-4.obj"));
+  specs[0].mesh.vertices(7, 1) += 2 * diagonal;
+  RigOptions options;
+  options.target_paths = false;
+  EXPECT_NO_THROW(Rig::Build(rest, std::move(specs), options));
+}
+
 TEST(ProductionRig, WeightsWhoseShapesWouldOverflowAreRefused) {
   RigOptions options;
   options.target_paths = false;

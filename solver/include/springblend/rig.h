@@ -164,6 +164,9 @@ struct RigSummary {
 // The least distance of an in-between's weight from 0, 1 and the target's other in-betweens: the blend's slope
 // between two knots is 1 / their distance (an in-between at 1e-300 gave weights of 1e300).
 inline constexpr double kMinInbetweenSpacing = 1e-6;
+// The farthest a target, in-between or combination sculpt may take a vertex from the rest shape (times its
+// mask), in rest-mesh bounding-box diagonals: Rig::Build refuses farther ones, naming the target and vertex.
+inline constexpr double kMaxTargetReach = 10.0;
 // Throws Error(kInvalidInput) naming the entry (`field(i)`, e.g. "inbetweens[1].weight") unless every weight is in
 // (0, 1) and at least kMinInbetweenSpacing from 0, 1 and the others. Rig::Build checks a target's in-betweens
 // with it; a server checks an upload's header with it before the meshes arrive.
