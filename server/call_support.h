@@ -160,5 +160,16 @@ inline grpc::Status BuildStatus(const std::exception& error, grpc::CallbackServe
   if (CallExpired(*call)) return DeadlineExceeded("the deadline passed while the character was being built");
   return Cancelled("the call was cancelled while the character was being built");
 }
+// The same for a build's error as PendingBuild::OnDone passes it.
+inline grpc::Status BuildStatus(std::exception_ptr error, grpc::CallbackServerContext* call,
+                                const ServiceContext& context) {
+  try {
+    std::rethrow_exception(error);
+  } catch (const std::exception& e) {
+    return BuildStatus(e, call, context);
+  } catch (...) {
+    return ToStatus(Error(ErrorCode::kInternal, "the build failed with an unknown error"));
+  }
+}
 
 }  // namespace springblend::server

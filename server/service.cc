@@ -27,13 +27,7 @@ grpc::ServerUnaryReactor* CharacterServiceImpl::GetCharacter(grpc::CallbackServe
         const bool with_faces = request.with_faces();
         const auto answer = [this, call, response, with_faces, id = request.id()](
                                 const std::shared_ptr<const CharacterStore::Entry>& entry, std::exception_ptr error) {
-          if (error) {
-            try {
-              std::rethrow_exception(error);
-            } catch (const std::exception& e) {
-              return BuildStatus(e, call, context_);
-            }
-          }
+          if (error) return BuildStatus(error, call, context_);
           if (!entry) return NotFound(id);
           *response = ToProto(*entry, true);
           response->clear_cache_hit();

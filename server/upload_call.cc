@@ -101,12 +101,8 @@ class UploadReactor final : public grpc::ServerReadReactor<grpc::ByteBuffer> {
   void Built(const std::shared_ptr<const CharacterStore::Entry>& entry, std::exception_ptr error, bool known) {
     grpc::Status status;
     if (error) {
-      try {
-        std::rethrow_exception(error);
-      } catch (const std::exception& e) {
-        status = BuildStatus(e, call_, context_);
-        spdlog::warn("upload refused: {}", Printable(status.error_message(), 400));
-      }
+      status = BuildStatus(error, call_, context_);
+      spdlog::warn("upload refused: {}", Printable(status.error_message(), 400));
     } else if (!entry) {
       status = ToStatus(Error(ErrorCode::kInternal, "the character's cache file went missing while it was read; upload "
                                                     "it again"));
