@@ -83,10 +83,14 @@ class InteractiveReactor final : public grpc::ServerBidiReactor<grpc::ByteBuffer
     StartRead(&bytes_);
     lock.lock();
     starting_read_ = false;
+    // The read just started may already have ended (the client half-closed, inline or on another thread) while
+    // starting_read_ kept the session from finishing: whatever that callback could not do is done here.
     if (refused_) {
       FinishIfIdle(lock, *refused_);
     } else if (cancelled_) {
       FinishIfIdle(lock, StoppedStatus(*watch_, "the client cancelled the session"));
+    } else {
+      FinishIfDone(lock);
     }
     Act(lock);
   }
