@@ -151,6 +151,8 @@ inline CharacterStore::Wants BuildWants(grpc::CallbackServerContext* call, const
 
 // The response metadata that carries an upload's character id as soon as the pieces are checked.
 inline constexpr char kCharacterIdHeader[] = "springblend-character-id";
+// The routing header clients send (the character's id, computed before an upload: docs/server.md#routing).
+inline constexpr char kRoutingHeader[] = "x-springblend-character";
 
 // The status of a build's error for a call that waited for it: a stopped build says why it stopped.
 inline grpc::Status BuildStatus(const std::exception& error, grpc::CallbackServerContext* call, const ServiceContext& context) {

@@ -215,9 +215,12 @@ std::string Metrics::Render(const std::function<std::string()>& extra) const {
       "# HELP springblend_solve_streams Open Solve streams.\n"
       "# TYPE springblend_solve_streams gauge\nspringblend_solve_streams {}\n"
       "# HELP springblend_interactive_sessions Open Interactive sessions.\n"
-      "# TYPE springblend_interactive_sessions gauge\nspringblend_interactive_sessions {}\n",
+      "# TYPE springblend_interactive_sessions gauge\nspringblend_interactive_sessions {}\n"
+      "# HELP springblend_upload_routing_mismatches_total Uploads whose x-springblend-character header was not the "
+      "id the server gave the character (a balancer may have built it on another replica than its solves').\n"
+      "# TYPE springblend_upload_routing_mismatches_total counter\nspringblend_upload_routing_mismatches_total {}\n",
       frames_.load(), unconverged_frames_.load(), newton_iterations_.load(), colliders_.load(), solvers_.load(),
-      solver_bytes_.load(), solve_streams.load(), interactive_sessions.load());
+      solver_bytes_.load(), solve_streams.load(), interactive_sessions.load(), upload_routing_mismatches.load());
   out += solve_seconds_.Render("springblend_solve_seconds", "Time to solve one frame.");
   out += build_seconds_.Render("springblend_build_seconds",
                                "Time to build a rig (an upload's, as each upload that waited for it saw it).");

@@ -62,6 +62,10 @@ class Metrics {
   void ObserveQueueWait(double seconds) { queue_wait_seconds_.Observe(seconds); }
   // Open Solve streams and Interactive sessions: +1 when one starts, -1 when it is gone (OpenCall does both).
   std::atomic<std::int64_t> solve_streams{0}, interactive_sessions{0};
+  // Uploads whose routing header (x-springblend-character) was not the id the server gave the character: a
+  // client that computes ids differently, so a balancer may build the character on another replica than the
+  // one its solves go to.
+  std::atomic<std::uint64_t> upload_routing_mismatches{0};
 
   void CountFrame(double solve_seconds, int newton_iterations, bool converged);
   // Colliders turned into solver obstacles (a mesh collider: parsed or copied, checked, its AABB tree built).

@@ -70,6 +70,11 @@ class UploadReactor final : public grpc::ServerReadReactor<grpc::ByteBuffer> {
         Built(nullptr, std::current_exception(), true);
         return;
       }
+      if (found.building) {
+        CheckRouting(found.building->id());
+      } else if (found.entry) {
+        CheckRouting(found.entry->id);
+      }
       if (!found.building) {
         Built(found.entry, nullptr, true);
         return;
@@ -91,6 +96,20 @@ class UploadReactor final : public grpc::ServerReadReactor<grpc::ByteBuffer> {
       });
     });
     if (!queued) Done(kQueueFull);
+  }
+  // A client that sends the routing header computed the id before the upload, so that a balancer hashing the
+  // header sends the upload to the replica its solves will reach; a header that is not the id says that
+  // client computes it differently (logged and counted, the upload itself goes on).
+  void CheckRouting(const std::string& id) {
+    const auto& metadata = call_->client_metadata();
+    const auto header = metadata.find(kRoutingHeader);
+    if (header == metadata.end()) return;
+    const std::string_view sent(header->second.data(), header->second.size());
+    if (sent == id) return;
+    context_.metrics.upload_routing_mismatches.fetch_add(1, std::memory_order_relaxed);
+    spdlog::warn("upload {}: its {} header ({}) is not its id: the client computes ids differently, so a balancer "
+                 "may build it on another replica than the one its solves reach",
+                 id.substr(0, 12), kRoutingHeader, Printable(sent, 80));
   }
   void OnSendInitialMetadataDone(bool) override {
     std::unique_lock lock(mutex_);

@@ -132,7 +132,8 @@ v1::Character Client::UploadRig(const TriangleMesh& rest, const std::vector<RigT
       shapes.push_back(&b.mesh);
     }
   }
-  auto context = Context();
+  // Routed as its solves will be: by the id the server will give it.
+  auto context = Context(CharacterId(rest, targets, options));
   v1::Character response;
   auto writer = characters_->UploadCharacter(context.get(), &response);
   v1::UploadChunk header;

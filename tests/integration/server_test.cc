@@ -322,6 +322,88 @@ double SeriesValue(const std::string& page, const std::string& series) {
   return std::stod(page.substr(at + key.size(), page.find('\n', at + key.size()) - at - key.size()));
 }
 
+// Routing: a client computes a character's id before its upload and sends it as the routing header, so a
+// balancer hashing the header builds the character on the replica its solves reach. The id the client computes
+// is the server's, for plain and production rigs and every build option; an upload whose header is not its id
+// is still served, and logged and counted as a routing mismatch.
+TEST(ServerRouting, ClientsComputeTheIdTheServerGivesAndAMismatchIsCounted) {
+  TempDir cache;
+  ServerProcess server(cache.path().string(), {"--metrics", "127.0.0.1:0"});
+  ASSERT_GT(server.metrics_port(), 0);
+  Client client({server.address(), std::chrono::seconds(120)});
+  CylinderRig cylinder;
+  std::vector<RigTarget> plain(2);
+  plain[0].mesh = cylinder.targets[0];
+  plain[1].mesh = cylinder.targets[1];
+  v1::BuildOptions fast;
+  fast.set_no_target_paths(true);
+  v1::BuildOptions chosen = fast;
+  chosen.add_fixed_vertices(0);
+  chosen.add_fixed_vertices(7);
+  chosen.set_static_tolerance(-1.0);
+  chosen.set_bending_stiffness(0.5);
+  chosen.set_no_interior(true);
+  chosen.set_no_anchor(true);
+  std::vector<RigTarget> production = plain;
+  RigTarget::Inbetween half;
+  half.weight = 0.4;
+  half.mesh = cylinder.rest;
+  half.mesh.vertices = 0.5 * (cylinder.rest.vertices + cylinder.targets[0].vertices);
+  production[0].inbetweens.push_back(half);
+  production[1].mask.assign(static_cast<size_t>(cylinder.rest.vertices.rows()), 0.75);
+  production.push_back(plain[1]);
+  production.back().mesh.name = "both";
+  production.back().combination = {plain[0].mesh.name, plain[1].mesh.name};
+  const struct {
+    const char* what;
+    const std::vector<RigTarget>& targets;
+    v1::BuildOptions options;
+  } cases[] = {{"plain, with target paths", plain, {}},
+               {"plain, no target paths", plain, fast},
+               {"every build option", plain, chosen},
+               {"in-between, mask and combination", production, fast}};
+  std::set<std::string> ids;
+  for (const auto& c : cases) {
+    const std::string computed = CharacterId(cylinder.rest, c.targets, c.options);
+    const v1::Character uploaded = client.UploadRig(cylinder.rest, c.targets, c.options, c.what);
+    EXPECT_EQ(computed, uploaded.id()) << c.what;
+    ids.insert(uploaded.id());
+  }
+  EXPECT_EQ(ids.size(), 4u) << "each case is another character";
+  EXPECT_EQ(SeriesValue(HttpGet(server.metrics_port(), "/metrics"), "springblend_upload_routing_mismatches_total"), 0);
+
+  // A client that routes by something else than the id: served, and counted.
+  const auto channel = grpc::CreateChannel(server.address(), grpc::InsecureChannelCredentials());
+  auto stub = v1::CharacterService::NewStub(channel);
+  grpc::ClientContext context;
+  context.set_deadline(std::chrono::system_clock::now() + std::chrono::seconds(60));
+  context.AddMetadata(kCharacterHeader, std::string(64, '0'));
+  v1::Character response;
+  auto writer = stub->UploadCharacter(&context, &response);
+  v1::UploadChunk chunk;
+  v1::UploadHeader* header = chunk.mutable_header();
+  header->set_vertex_count(static_cast<std::uint32_t>(cylinder.rest.vertices.rows()));
+  header->set_face_count(static_cast<std::uint32_t>(cylinder.rest.faces.rows()));
+  header->add_target_names(plain[0].mesh.name);
+  *header->mutable_options() = fast;
+  ASSERT_TRUE(writer->Write(chunk));
+  const auto piece = [&](v1::MeshPiece::Kind kind, std::uint32_t shape, const void* data, size_t bytes) {
+    v1::UploadChunk p;
+    p.mutable_piece()->set_kind(kind);
+    p.mutable_piece()->set_shape(shape);
+    p.mutable_piece()->set_data(data, bytes);
+    return writer->Write(p);
+  };
+  ASSERT_TRUE(piece(v1::MeshPiece::FACES, 0, cylinder.rest.faces.data(), 4 * cylinder.rest.faces.size()));
+  ASSERT_TRUE(piece(v1::MeshPiece::POSITIONS, 0, cylinder.rest.vertices.data(), 8 * cylinder.rest.vertices.size()));
+  ASSERT_TRUE(piece(v1::MeshPiece::POSITIONS, 1, plain[0].mesh.vertices.data(), 8 * plain[0].mesh.vertices.size()));
+  writer->WritesDone();
+  const grpc::Status status = writer->Finish();
+  ASSERT_TRUE(status.ok()) << status.error_message();
+  EXPECT_EQ(response.id(), CharacterId(cylinder.rest, {plain[0]}, fast));
+  EXPECT_EQ(SeriesValue(HttpGet(server.metrics_port(), "/metrics"), "springblend_upload_routing_mismatches_total"), 1);
+}
+
 // Every sample's family has "# HELP" and then "# TYPE" before its first sample; returns those that do not.
 std::string FamiliesWithoutHelpAndType(const std::string& page) {
   std::map<std::string, std::string> types;  // family -> type, once its HELP and TYPE were seen in order

@@ -63,7 +63,14 @@ struct RigTarget {
   std::vector<std::string> combination;  // the drivers' names (>= 2 targets that are not combinations)
 };
 
-// The metadata header that names the character of a call, so a load balancer can route by it.
+// The id the server gives a character uploaded with these meshes and options (the name is not part of it), the
+// hex SHA-256 of its canonical bytes (docs/server.md#routing). Upload and UploadRig send it as the
+// kCharacterHeader of the upload, so a balancer that hashes the header builds the character on the replica its
+// solves will reach.
+std::string CharacterId(const TriangleMesh& rest, const std::vector<RigTarget>& targets,
+                        const v1::BuildOptions& options = {});
+
+// The metadata header that names the character of a call, so a load balancer can route by it (uploads too).
 inline constexpr char kCharacterHeader[] = "x-springblend-character";
 // The initial metadata in which the server names an upload's character as soon as its pieces are checked.
 inline constexpr char kCharacterIdMetadata[] = "springblend-character-id";
