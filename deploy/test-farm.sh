@@ -3,7 +3,8 @@
 # mmdebstrap, no registry needed), runs three replicas sharing one cache directory behind nginx (gRPC, consistent
 # hash on the x-springblend-character header), and checks through the load balancer, with the host's CLI:
 #   (a) health; (b) uploads of several characters; (c) affinity: every solve of one character is served by the
-#   same replica, and at least two replicas serve something; (d) a replica killed while solves run: the others'
+#   same replica, and at least two replicas serve something; (c') each upload reached the replica that then
+#   serves its character (the client sends the id it computed as the routing header); (d) a replica killed while solves run: the others'
 #   streams finish, and its characters move to a live replica and are rebuilt from the shared cache without a
 #   re-upload; (e) the farm's frames equal a local `springblend blend` of the same frames; (f) a bake split into
 #   chunks on two replicas is byte-identical to the whole bake (stateless frames); plus the image's
@@ -220,6 +221,19 @@ if [ "$ok" = 1 ] && [ "$distinct_replicas" -ge 2 ]; then
 else
   fail "(c) affinity: $distinct_replicas distinct replicas used"
 fi
+
+# (c') routing: each upload carried its character's id (computed by the client before the upload) in the
+# header the balancer hashes, so it reached the replica that then served every solve of that character
+ok=1
+for k in "${!names[@]}"; do
+  name=${names[$k]}
+  upstream=$(grep 'UploadCharacter' "$farm/access.log" | grep "character=${id_of[$name]} " |
+    sed -n 's/.*upstream=127\.0\.0\.1:5006\([0-9]\).*/replica-\1/p' | sort -u)
+  if [ "$upstream" != "${replicas_used[$k]}" ]; then
+    ok=0; fail "(c') $name's upload went to '${upstream:-no replica with its id as header}', its solves to ${replicas_used[$k]}"
+  fi
+done
+[ "$ok" = 1 ] && pass "(c') each of ${#names[@]} uploads reached the replica that serves its character (routed by the id)"
 
 # (d) kill the replica with the most characters while the others stream solves
 victim=$(printf '%s\n' "${replicas_used[@]}" | sort | uniq -c | sort -k1,1nr -k2 | awk 'NR==1{print $2}')

@@ -138,6 +138,38 @@ class RigUploadTest(unittest.TestCase):
         targets = {t.name: t.positions for t in plain.targets}
         self.assertEqual(self.client.upload_rig(plain).id, self.client.upload(rig.rest, rig.faces, targets).id)
 
+    def test_uploads_are_routed_by_the_id_the_server_gives(self):
+        # The routing header each upload carries (docs/server.md#routing) is the id the server answers with:
+        # a production rig, the same rig with plain targets, and a plain upload with every build option.
+        class Recorder:
+            def __init__(self, method):
+                self.method, self.routes = method, []
+
+            def _record(self, metadata):
+                self.routes.append(dict(metadata or ()).get(springblend.CHARACTER_HEADER))
+
+            def __call__(self, request, **kwargs):
+                self._record(kwargs.get("metadata"))
+                return self.method(request, **kwargs)
+
+            def future(self, request, **kwargs):
+                self._record(kwargs.get("metadata"))
+                return self.method.future(request, **kwargs)
+
+        with springblend.Client(self.server.address, timeout=180) as client:
+            recorder = Recorder(client._characters.UploadCharacter)
+            client._characters.UploadCharacter = recorder
+            rig = rigfile.load_rig(RIG)
+            ids = [client.upload_rig(rig, no_target_paths=True).id]
+            ids.append(client.upload_rig(rig, on_progress=lambda *_: None).id)
+            targets = {t.name: t.positions for t in rig.targets[:2]}
+            ids.append(client.upload(rig.rest, rig.faces, targets, fixed_vertices=[0, 5], static_tolerance=-1,
+                                     no_interior=True, no_anchor=True, bending_stiffness=0.5,
+                                     no_target_paths=True).id)
+            ids.append(client.upload(rig.rest, rig.faces, targets, no_target_paths=True).id)
+        self.assertEqual(recorder.routes, ids)
+        self.assertEqual(len(set(ids)), 4)
+
     def test_server_refusals_name_the_rig_file(self):
         rig = rigfile.load_rig(RIG)
         rig.targets[0].inbetweens = [(1.5, rig.targets[0].inbetweens[0][1])]

@@ -13,7 +13,7 @@ import typing
 import grpc
 import numpy as np
 
-from springblend import arrays, colliders as shapes, pointcache, rigfile
+from springblend import arrays, colliders as shapes, pointcache, rigfile, routing
 from springblend._generated import health_pb2, pb, pb_grpc
 from springblend.errors import SpringblendError, invalid_argument
 
@@ -211,11 +211,13 @@ class Client:
             for target, data in masks.items():
                 yield from self._pieces(pb.MeshPiece.MASK, target, data, len(data) // 8, 8)
 
+        # Routed as its solves will be: by the id the server will give it.
+        character_id = routing.character_id(header, faces, shapes_, masks)
         if on_progress is None:
-            return self._call(self._characters.UploadCharacter, chunks())
+            return self._call(self._characters.UploadCharacter, chunks(), character_id)
         try:
             call = self._characters.UploadCharacter.future(chunks(), timeout=self.timeout,
-                                                           metadata=self._metadata(""))
+                                                           metadata=self._metadata(character_id))
         except grpc.RpcError as error:
             raise self._error(error) from None
         try:
