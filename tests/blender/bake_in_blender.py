@@ -2,6 +2,9 @@
 shape keys and colliders, checks that errors come back as reports, uploads and bakes through the operators,
 first into shape keys, then into a PC2 point cache next to the saved .blend played by a Mesh Cache modifier,
 and saves what Blender shows on each baked frame in both modes (#frames by #V by 3) for bake_test.py to compare.
+Upload and bake also run through their modal path (what the UI runs: the calls on a worker thread, polled by a
+timer), driven here with the timer events Blender's event loop would send: the same character and the same
+frames as the synchronous path, progress shown, and a cancelled bake ends cancelled.
 
 blender --background --factory-startup --python-exit-code 1 --python bake_in_blender.py -- CONFIG.json
 """
@@ -9,6 +12,8 @@ blender --background --factory-startup --python-exit-code 1 --python bake_in_ble
 import os
 import pathlib
 import sys
+import time
+import types
 
 import bpy
 import numpy as np
@@ -23,6 +28,78 @@ def shown_frames(scene, obj, frames):
         scene.frame_set(frame)
         shown.append(shown_positions(obj))
     return np.stack(shown)
+
+
+class Stand:
+    """What the modal path touches of Blender's context besides the scene: the window manager's timer and
+    progress bar and the status bar, recorded."""
+
+    def __init__(self):
+        self.scene, self.active_object, self.window = bpy.context.scene, bpy.context.active_object, None
+        self.window_manager, self.workspace = self, self
+        self.texts, self.progress = [], []
+
+    def event_timer_remove(self, timer):
+        pass
+
+    def progress_update(self, value):
+        self.progress.append(value)
+
+    def progress_end(self):
+        pass
+
+    def status_text_set(self, text):
+        self.texts.append(text)
+
+
+def run_modal(operator_class, escape_first=False, seconds=120):
+    """Runs an operator's modal path on stand-ins: prepare, (Esc,) start, TIMER events until it ends. Returns
+    (result, reports, status texts)."""
+    from springblend_blender import jobs, operators
+
+    driven = types.SimpleNamespace(bl_label=operator_class.bl_label, reports=[], _timer=None,
+                                   _read_frames=operator_class._read_frames if hasattr(operator_class, "_read_frames")
+                                   else None)
+    driven.report = lambda kinds, message: driven.reports.append((set(kinds), message))
+    for name, function in [("prepare", operator_class.prepare), ("apply", operator_class.apply),
+                           ("finish", operator_class.finish), ("failed", operators._Guarded.failed),
+                           ("modal", jobs.ModalJob.modal), ("_end", jobs.ModalJob._end)]:
+        setattr(driven, name, types.MethodType(function, driven))
+    context = Stand()
+    driven._job = driven.prepare(context)
+    if escape_first:
+        check(driven.modal(context, types.SimpleNamespace(type="ESC")) == {"PASS_THROUGH"}, "Esc was not passed on")
+    driven._job.start()
+    deadline = time.monotonic() + seconds
+    while True:
+        result = driven.modal(context, types.SimpleNamespace(type="TIMER"))
+        if result != {"RUNNING_MODAL"}:
+            check(not jobs.RUNNING, "a finished job is still listed as running")
+            return result, driven.reports, context.texts
+        check(time.monotonic() < deadline, f"the modal {operator_class.bl_label} did not end within {seconds} s")
+        time.sleep(0.05)
+
+
+def check_modal(config, scene, obj, synchronous):
+    from springblend_blender import operators
+    character = obj.springblend_character
+    obj.springblend_character = ""
+    result, reports, texts = run_modal(operators.SPRINGBLEND_OT_upload)
+    check(result == {"FINISHED"}, f"modal upload: {result} {reports}")
+    check(obj.springblend_character == character, "the modal upload gave another character than the synchronous one")
+    check(any("uploading 'Cylinder'" in (t or "") for t in texts), f"the modal upload showed no progress: {texts}")
+    check(texts[-1] is None, "the status bar was not cleared")
+    result, reports, texts = run_modal(operators.SPRINGBLEND_OT_bake)
+    check(result == {"FINISHED"}, f"modal bake: {result} {reports}")
+    check(any("baking 'Cylinder': frame" in (t or "") for t in texts), f"the modal bake showed no progress: {texts}")
+    np.testing.assert_array_equal(shown_frames(scene, obj, config["frames"]), synchronous,
+                                  err_msg="the modal bake's frames differ from the synchronous bake's")
+    result, reports, texts = run_modal(operators.SPRINGBLEND_OT_bake, escape_first=True)
+    check(result == {"CANCELLED"}, f"a cancelled modal bake ended {result}")
+    check(any("WARNING" in kinds and "bake frames cancelled" in message for kinds, message in reports),
+          f"the cancelled bake said {reports}")
+    check(not [kb for kb in obj.data.shape_keys.key_blocks if kb.name.startswith("springblend_frame_")],
+          "a cancelled bake stored frames")
 
 
 def main():
@@ -53,7 +130,9 @@ def main():
     character, obj.springblend_character = obj.springblend_character, "0" * 64
     expect_error_report(bpy.ops.springblend.bake, "NOT_FOUND")
     obj.springblend_character = character
-    np.save(config["output"], shown_frames(scene, obj, config["frames"]))
+    synchronous = shown_frames(scene, obj, config["frames"])
+    np.save(config["output"], synchronous)
+    check_modal(config, scene, obj, synchronous)
 
     # Point cache: an unsaved .blend has no directory to put it next to.
     scene.springblend.bake_mode = "POINT_CACHE"

@@ -1,5 +1,6 @@
 """The add-on's operators: check the server, upload the active mesh, bake a frame range. Every failure becomes
-a Blender report (the server's message included), never a traceback."""
+a Blender report (the server's message included), never a traceback. Upload and bake run modal from the UI:
+their calls go on a worker thread (jobs.py) with a progress bar, the interface stays live, and Esc cancels."""
 
 import contextlib
 import os
@@ -7,7 +8,7 @@ import time
 
 import bpy
 
-from . import connection, live, scene_data, store
+from . import connection, jobs, live, scene_data, store
 from .scene_data import UserError
 
 
@@ -17,11 +18,17 @@ class _Guarded:
     def execute(self, context):
         try:
             return self.run(context)
-        except UserError as error:
-            self.report({"ERROR"}, f"springblend: {error}")
-        except OSError as error:
-            self.report({"ERROR"}, f"springblend: {error.filename or 'a file'}: {error.strerror or error}")
         except Exception as error:  # noqa: BLE001 - shown to the artist instead of a traceback
+            return self.failed(context, error)
+
+    def failed(self, context, error):
+        if isinstance(error, UserError):
+            self.report({"ERROR"}, f"springblend: {error}")
+        elif isinstance(error, jobs.Cancelled):
+            self.report({"WARNING"}, f"springblend: {self.bl_label.lower()} cancelled")
+        elif isinstance(error, OSError):
+            self.report({"ERROR"}, f"springblend: {error.filename or 'a file'}: {error.strerror or error}")
+        else:
             springblend = _loaded_client()
             if springblend is not None and isinstance(error, springblend.SpringblendError):
                 self.report({"ERROR"}, f"springblend server {connection.server_address(context.scene)}: "
@@ -56,26 +63,54 @@ class SPRINGBLEND_OT_check_server(_Guarded, bpy.types.Operator):
         return {"FINISHED"}
 
 
-class SPRINGBLEND_OT_upload(_Guarded, bpy.types.Operator):
-    """Upload the active mesh (its Basis) with its shape keys as the character's targets"""
+class SPRINGBLEND_OT_upload(jobs.ModalJob, _Guarded, bpy.types.Operator):
+    """Upload the active mesh (its Basis) with its shape keys as the character's targets (the build runs on the
+    server while Blender stays usable; Esc cancels it)"""
     bl_idname = "springblend.upload"
     bl_label = "Upload Character"
     bl_options = {"REGISTER", "UNDO"}
 
     @classmethod
     def poll(cls, context):
-        return context.active_object is not None and context.active_object.type == "MESH"
+        return not jobs.RUNNING and context.active_object is not None and context.active_object.type == "MESH"
 
     def run(self, context):
+        return self.run_job(context)
+
+    def prepare(self, context):
+        """The rig read on the main thread; the upload and its build followed on the worker."""
         obj = context.active_object
         rig = _character_rig(obj)
-        rest, targets = rig.rest, rig.targets
-        with connection.connect(context.scene) as client:
-            character = client.upload_rig(rig, name=obj.name)
+        client = connection.connect(context.scene)
+        name = self._object_name = obj.name
+        self._counts = (len(rig.rest), len(rig.targets))
+
+        def work(job):
+            def progress(character_id, p):
+                eta = f" of ~{p.estimate_ms / 1000:.0f} s" if p.estimate_ms else ""
+                job.progress(p.targets_done / p.targets if p.targets else 0.0,
+                             f"building '{name}' ({character_id[:12]}): {p.stage}, paths {p.targets_done}/"
+                             f"{p.targets}, {p.elapsed_ms / 1000:.0f} s{eta}")
+
+            job.progress(0.0, f"uploading '{name}'")
+            with client:
+                return client.upload_rig(rig, name=name, on_progress=progress)
+
+        return jobs.Job(work, "upload")
+
+    def apply(self, context, items):
+        pass
+
+    def finish(self, context, job):
+        character = job.result
+        obj = bpy.data.objects.get(self._object_name)
+        if obj is None:
+            raise UserError(f"'{self._object_name}' was removed while it uploaded; its character is "
+                            f"{character.id[:12]} on the server")
         obj.springblend_character = character.id
         how = "already on the server" if character.cache_hit else \
             f"rig built in {character.summary.precompute_ms:.0f} ms"
-        self.report({"INFO"}, f"springblend: uploaded '{obj.name}' ({len(rest)} vertices, {len(targets)} "
+        self.report({"INFO"}, f"springblend: uploaded '{obj.name}' ({self._counts[0]} vertices, {self._counts[1]} "
                               f"targets) as {character.id[:12]}, {how}")
         return {"FINISHED"}
 
@@ -117,18 +152,23 @@ class SPRINGBLEND_OT_export_rig(_Guarded, bpy.types.Operator):
         return {"FINISHED"}
 
 
-class SPRINGBLEND_OT_bake(_Guarded, bpy.types.Operator):
+class SPRINGBLEND_OT_bake(jobs.ModalJob, _Guarded, bpy.types.Operator):
     """Solve every frame of the range on the server and store the results: a PC2 point cache played by a Mesh
-    Cache modifier, or one corrective shape key per frame"""
+    Cache modifier, or one corrective shape key per frame (Blender stays usable while it solves; Esc cancels)"""
     bl_idname = "springblend.bake"
     bl_label = "Bake Frames"
     bl_options = {"REGISTER", "UNDO"}
 
     @classmethod
     def poll(cls, context):
-        return context.active_object is not None and context.active_object.type == "MESH"
+        return not jobs.RUNNING and context.active_object is not None and context.active_object.type == "MESH"
 
     def run(self, context):
+        return self.run_job(context)
+
+    def prepare(self, context):
+        """On the main thread: the frames' weights, colliders and motions read from the scene; the worker
+        streams the solve (and writes the point cache); apply() stores corrective keys on the main thread."""
         scene, obj = context.scene, context.active_object
         if not obj.springblend_character:
             raise UserError(f"'{obj.name}' has not been uploaded: press Upload Character first")
@@ -141,7 +181,8 @@ class SPRINGBLEND_OT_bake(_Guarded, bpy.types.Operator):
         to_cache = scene.springblend.bake_mode == "POINT_CACHE"
         cache_path = _cache_path(scene, obj) if to_cache else None
         springblend = connection.client_module()
-        with connection.connect(scene) as client:
+        client = connection.connect(scene)
+        try:
             target_names = list(client.get(obj.springblend_character).target_names)
             if not to_cache:
                 store.remove_bake(obj)
@@ -150,36 +191,60 @@ class SPRINGBLEND_OT_bake(_Guarded, bpy.types.Operator):
             rest = scene_data.key_positions(obj.data.shape_keys.reference_key)
             if len(rest) != len(obj.data.vertices):
                 raise UserError(f"'{obj.name}' changed its vertex count since the upload: upload again")
-            started = time.monotonic()
-            window_manager = context.window_manager
-            window_manager.progress_begin(0, len(frames))
-            unconverged = []
-            try:
+        except BaseException:
+            client.close()
+            raise
+        self._object_name = obj.name
+        self._frames, self._shown_values, self._rest = frames, shown_values, rest
+        self._range, self._to_cache, self._cache_path = (first, last), to_cache, cache_path
+        self._colliders = len(request["colliders"])
+        self._unconverged = []
+        self._started = time.monotonic()
+        character, name = obj.springblend_character, obj.name
+
+        def work(job):
+            with client:
                 # A point cache is written beside its path and put in place only when every frame is in, so a
-                # failed bake leaves the earlier one playing.
+                # failed or cancelled bake leaves the earlier one playing.
                 with (springblend.pointcache.PointCacheWriter(cache_path, len(rest), start_frame=first)
                       if to_cache else contextlib.nullcontext()) as cache:
-                    for solved in client.solve_frames(obj.springblend_character, **request):
-                        frame = frames[solved.index]
+                    for solved in client.solve_frames(character, **request):
                         if to_cache:
                             cache.add(solved.positions)
-                        else:
-                            linear = scene_data.shown_blend(obj, rest, shown_values[solved.index])
-                            store.store_frame(obj, frame, rest, linear, solved.positions)
-                        if not solved.summary.converged:
-                            unconverged.append(f"{frame} ({solved.summary.termination})")
-                        window_manager.progress_update(solved.index + 1)
-            finally:
-                window_manager.progress_end()
-        if to_cache:
+                        job.deliver((solved.index, None if to_cache else solved.positions,
+                                     solved.summary.converged, solved.summary.termination))
+                        job.progress((solved.index + 1) / len(frames),
+                                     f"baking '{name}': frame {frames[solved.index]} "
+                                     f"({solved.index + 1} of {len(frames)})")
+
+        return jobs.Job(work, "bake")
+
+    def apply(self, context, items):
+        obj = bpy.data.objects.get(self._object_name)
+        if obj is None:
+            raise UserError(f"'{self._object_name}' was removed while it baked")
+        for index, positions, converged, termination in items:
+            frame = self._frames[index]
+            if positions is not None:
+                linear = scene_data.shown_blend(obj, self._rest, self._shown_values[index])
+                store.store_frame(obj, frame, self._rest, linear, positions)
+            if not converged:
+                self._unconverged.append(f"{frame} ({termination})")
+
+    def finish(self, context, job):
+        obj = bpy.data.objects.get(self._object_name)
+        if obj is None:
+            raise UserError(f"'{self._object_name}' was removed while it baked")
+        first, last = self._range
+        if self._to_cache:
             store.remove_bake(obj)
-            store.install_cache(obj, _modifier_path(scene, cache_path), first)
-        seconds = time.monotonic() - started
-        where = f" into {cache_path}" if to_cache else ""
-        self.report({"INFO"}, f"springblend: baked frames {first}..{last} of '{obj.name}' ({len(frames)} frames, "
-                              f"{len(request['colliders'])} colliders){where} in {seconds:.1f} s")
-        if unconverged:
-            self.report({"WARNING"}, f"springblend: frames not converged: {', '.join(unconverged)}")
+            store.install_cache(obj, _modifier_path(context.scene, self._cache_path), first)
+        seconds = time.monotonic() - self._started
+        where = f" into {self._cache_path}" if self._to_cache else ""
+        self.report({"INFO"}, f"springblend: baked frames {first}..{last} of '{obj.name}' ({len(self._frames)} "
+                              f"frames, {self._colliders} colliders){where} in {seconds:.1f} s")
+        if self._unconverged:
+            self.report({"WARNING"}, f"springblend: frames not converged: {', '.join(self._unconverged)}")
         return {"FINISHED"}
 
     @staticmethod

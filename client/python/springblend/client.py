@@ -323,11 +323,14 @@ class Client:
             options=pb.SolveOptions(residual_tolerance=float(tolerance), max_iterations=int(max_iterations),
                                     linear=bool(linear), with_normals=bool(normals)),
             frames=_frame_requests(weights, collider_transforms, pins))
+        call = self._solves.Solve(request, timeout=self.timeout, metadata=self._metadata(character_id))
         try:
-            for frame in self._solves.Solve(request, timeout=self.timeout, metadata=self._metadata(character_id)):
+            for frame in call:
                 yield _decode(frame)
         except grpc.RpcError as error:
             raise self._error(error) from None
+        finally:
+            call.cancel()  # a no-op once the stream has ended; a caller that stops early ends it on the server
 
     def interactive(self, character_id, colliders=(), tolerance=0.0, max_iterations=0, linear=False,
                     normals=False, previews=False):
