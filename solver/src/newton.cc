@@ -212,6 +212,13 @@ void InexactNewton::Minimize(const MinimizerProblem& problem, Eigen::VectorXd* x
       summary->termination = MinimizerTermination::kNumericalFailure;
       break;
     }
+    // A direction (factorizations, conjugate gradients) is most of an iteration: a stop asked meanwhile ends
+    // the solve before its line search, so a cancelled rig build stops within about one direction.
+    if (problem.Stopped()) {
+      summary->termination = MinimizerTermination::kCancelled;
+      summary->message = "cancelled";
+      break;
+    }
 
     // A step that carries a vertex further than a fraction of a spring length can pass it through its
     // neighbours and land in another (inverted) equilibrium; shorten such steps before the line search.

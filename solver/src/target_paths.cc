@@ -434,8 +434,8 @@ void BuildPath(const Rig& rig, int target, const TargetPathsOptions& options, Ta
     }
   };
   // Per segment between two knots: the sweep up from the lower knot; where it does not end on the upper
-  // knot's shape, the sweep down from that too, and one switch from the up branch to the down branch at the
-  // first step where the down branch's energy is lower.
+  // knot's shape, the sweep down from that too while its energy is the lower one, and one switch from the up
+  // branch to the down branch where that run ends.
   std::vector<Sample> inside;
   std::vector<int> switches;  // in `inside`: intervals from an up branch to a down branch
   Sample rest = solver.End(0.0);
@@ -463,24 +463,29 @@ void BuildPath(const Rig& rig, int target, const TargetPathsOptions& options, Ta
         continue;
       }
       std::vector<Sample> down;  // descending
-      Continuation from_upper;
-      from_upper.Add(upper);
-      for (size_t k = grid.size() - 1; k-- > 1;) solver.Refined(grid[k + 1], grid[k], from_upper, &down);
-      mark_descending(down, &upper);
-      std::reverse(down.begin(), down.end());  // ascending, above a
       const auto energy_at = [](const std::vector<Sample>& samples, double alpha) {
         for (const Sample& s : samples) {
           if (s.alpha == alpha) return s.energy;
         }
         return std::numeric_limits<double>::infinity();
       };
+      // The sweep down goes on while its branch has the lower energy at the grid's points: the path follows it
+      // from the upper knot down to the last such point, and the up branch below (one switch, decided per
+      // interval). The steps below that point would not be kept, so they are not solved.
       double switch_at = b;
-      for (size_t k = 1; k + 1 < grid.size(); ++k) {
-        if (energy_at(down, grid[k]) < energy_at(up, grid[k])) {
-          switch_at = grid[k];
+      Continuation from_upper;
+      from_upper.Add(upper);
+      for (size_t k = grid.size() - 1; k-- > 1;) {
+        const size_t before = down.size();
+        solver.Refined(grid[k + 1], grid[k], from_upper, &down);
+        if (!(energy_at(down, grid[k]) < energy_at(up, grid[k]))) {
+          down.resize(before);  // this step (and its halvings) lies below the switch
           break;
         }
+        switch_at = grid[k];
       }
+      mark_descending(down, &upper);
+      std::reverse(down.begin(), down.end());  // ascending, above a
       for (Sample& s : up) {
         if (s.alpha < switch_at) inside.push_back(std::move(s));
       }

@@ -6,9 +6,10 @@
 // One branch per path, chosen deterministically:
 //  - the sweep up from the rest shape (continuation at `intervals` steps per unit, each step started from the
 //    polynomial through the branch's last corrections, halved where Newton does not converge);
-//  - where it does not end on the target, the sweep down from the target too, and one switch between them:
-//    the up branch below the first step where the down branch's energy is lower, the down branch from there
-//    on (so alpha 0 and 1 are the rest shape and the target exactly, and the choice is per interval);
+//  - where it does not end on the target, the sweep down from the target too, for as long as its branch has
+//    the lower energy at the steps, and one switch between them: the down branch from the target down to the
+//    last such step, the up branch below it (so alpha 0 and 1 are the rest shape and the target exactly, and
+//    the choice is per interval);
 //  - beyond [0, 1], continuation from the nearer end;
 //  - a step that lands far from its extrapolated start went over a fold: the path breaks there.
 // Certified, keeping only the samples it needs: of the solved steps, the ends, knots, both sides of switches
