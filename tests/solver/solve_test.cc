@@ -90,7 +90,15 @@ INSTANTIATE_TEST_SUITE_P(
         RigCase{"cylinder/cylinder.obj", {"cylinder/poses-1_cylinder-2.obj"}, BoundaryMode::kAnchored},
         RigCase{"cube/cube.obj", {"cube/poses-1_cube-1.obj"}, BoundaryMode::kFixedVertices},
         RigCase{"cube/cube.obj", {"cube/poses-1_cube-4.obj", "cube/poses-2_cube-1.obj"},
-                BoundaryMode::kAnchored}));
+                BoundaryMode::kAnchored}),
+    // A name per case (mesh, target count, boundary), so that CTest lists and filters each one (without it
+    // every case showed as ".../40-byte" and ran under one name).
+    [](const ::testing::TestParamInfo<RigCase>& info) {
+      const std::string rest = info.param.rest;
+      const std::string mesh = rest.substr(0, rest.find('/'));
+      return mesh + "_" + std::to_string(info.param.targets.size()) + "_targets_" +
+             (info.param.mode == BoundaryMode::kAnchored ? "anchored" : "fixed");
+    });
 
 TEST(Sweep, EndsExactlyOnTheTargetWithEveryFrameInEquilibrium) {
   auto rig = LoadRig("cylinder/cylinder.obj", {"cylinder/poses-2_cylinder-1.obj"});
