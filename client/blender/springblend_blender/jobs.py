@@ -5,7 +5,7 @@ to Blender's data, and Esc cancels it: the worker's next progress callback or fr
 cancels the call, and the server stops the build or the stream.
 
 Headless (blender -b, scripts) the operators run the same work synchronously (execute), and a test drives a
-job with poll() as the modal timer would.
+job through its modal path as the timer would.
 """
 
 import queue
@@ -96,11 +96,6 @@ class Job:
             fraction, text = self._fraction, self._text
         return items, fraction, text, done
 
-    def wait(self, seconds):
-        """Waits up to `seconds` for the worker to end (a test's or a cancelled operator's)."""
-        self._thread.join(seconds)
-        return self._done.is_set()
-
 
 class ModalJob:
     """The modal side of an operator that runs a Job: for an Operator whose prepare(context) returns the Job (not
@@ -151,10 +146,7 @@ class ModalJob:
         if not done:
             return {"RUNNING_MODAL"}
         self._end(context)
-        if isinstance(self._job.error, Cancelled):
-            self.report({"WARNING"}, f"springblend: {self.bl_label.lower()} cancelled")
-            return {"CANCELLED"}
-        if self._job.error is not None:
+        if self._job.error is not None:  # Cancelled included: failed() reports it as a warning
             return self.failed(context, self._job.error)
         try:
             return self.finish(context, self._job)
