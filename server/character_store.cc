@@ -31,8 +31,10 @@ constexpr char kFileMagic[8] = {'S', 'B', 'C', 'H', 'A', 'R', '0', '2'};
 constexpr size_t kDigestBytes = 32;  // SHA-256
 // After the shapes of a production rig (in-betweens, masks, combinations); plain characters end before it.
 constexpr char kRigMarker[8] = {'S', 'B', 'R', 'I', 'G', '0', '0', '1'};
-// Build options beyond the defaults that change the solved frames (today: no target paths). Written only when
-// some differs, so a character with default options keeps the bytes (and id) it always had.
+// Build options beyond the defaults that change the solved frames: a byte for target paths (0: none), then,
+// only when set, a byte 1 for the held outer rim. Written only when some differs from the default, so a
+// character with default options keeps the bytes (and id) it always had, and files of earlier versions (the
+// first byte alone) still load.
 constexpr char kOptionsMarker[8] = {'S', 'B', 'O', 'P', 'T', '0', '0', '1'};
 
 // Little-endian byte writer/reader for the canonical form (x86-64 and aarch64 are little-endian).
@@ -259,9 +261,10 @@ std::string SerializeWithName(const CharacterData& d, const std::string& name) {
       for (const auto& driver : t.combination) w.PutString(driver);
     }
   }
-  if (!o.target_paths) {
+  if (!o.target_paths || o.hold_outer_rim) {
     w.PutBytes(kOptionsMarker, sizeof(kOptionsMarker));
-    w.Put<std::uint8_t>(0);  // target_paths
+    w.Put<std::uint8_t>(o.target_paths ? 1 : 0);
+    if (o.hold_outer_rim) w.Put<std::uint8_t>(1);
   }
   return w.Take();
 }
@@ -357,6 +360,7 @@ CharacterData Deserialize(const std::string& bytes) {
   }
   if (std::memcmp(marker, kOptionsMarker, sizeof(marker)) == 0) {
     d.options.target_paths = r.Get<std::uint8_t>() != 0;
+    if (!r.Done()) d.options.hold_outer_rim = r.Get<std::uint8_t>() != 0;
   } else if (marker[0] != 0) {
     throw Error(ErrorCode::kInvalidInput, "character data has trailing bytes");
   }

@@ -253,6 +253,7 @@ void UploadAssembler::Add(v1::UploadChunk& chunk) {
     data_.options.interior = !o.no_interior();
     data_.options.anchor = !o.no_anchor();
     data_.options.target_paths = !o.no_target_paths();
+    data_.options.hold_outer_rim = o.hold_outer_rim();
     if (o.bending_stiffness() != 0.0) data_.options.bending_stiffness = o.bending_stiffness();
     data_.options.Validate();
     vertex_count_ = h.vertex_count();
@@ -414,6 +415,7 @@ v1::Character ToProto(const CharacterStore::Entry& entry, bool cache_hit) {
   out->set_boundary_mode(ToString(s.boundary_mode));
   out->set_precompute_ms(s.precompute_ms);
   for (const auto& n : s.notes) out->add_notes(n);
+  out->set_rim_vertices(static_cast<std::uint32_t>(s.rim_vertices));
   out->set_paths_loaded(s.paths_loaded);
   out->set_path_samples(s.path_samples);
   out->set_uncertified_path_intervals(s.uncertified_path_intervals);

@@ -27,8 +27,9 @@ struct BlendArgs {
   std::string rig;
   std::string rest;
   std::vector<std::string> targets;
-  std::vector<double> weights;
+  std::vector<std::string> weights;  // numbers, or NAME=NUMBER
   std::string out;
+  CacheTiming timing;
   int sweep = 0;
   bool linear = false;
   std::vector<int> fixed;
@@ -36,6 +37,7 @@ struct BlendArgs {
   bool no_bending = false;
   bool no_interior = false;
   bool no_anchor = false;
+  bool hold_outer_rim = false;
   double bending_stiffness = RigOptions{}.bending_stiffness;
   double tolerance = SolveOptions{}.residual_tolerance;
   int max_iterations = SolveOptions{}.max_iterations;
@@ -66,6 +68,7 @@ nlohmann::json RigJson(const RigSummary& s) {
           {"tetrahedra", s.tetrahedra},
           {"static_vertices", s.static_vertices},
           {"user_fixed_vertices", s.user_fixed_vertices},
+          {"rim_vertices", s.rim_vertices},
           {"boundary_mode", ToString(s.boundary_mode)},
           {"degenerate_faces", s.degenerate_faces},
           {"boundary_edges", s.boundary_edges},
@@ -104,6 +107,7 @@ int RunBlend(const BlendArgs& args) {
   rig_options.bending_springs = !args.no_bending;
   rig_options.interior = !args.no_interior;
   rig_options.anchor = !args.no_anchor;
+  rig_options.hold_outer_rim = args.hold_outer_rim;
   rig_options.bending_stiffness = args.bending_stiffness;
   rig_options.linear_solver = LinearSolverTypeFromString(args.solver);
   rig_options.target_paths = !args.no_target_paths;
@@ -145,6 +149,7 @@ int RunBlend(const BlendArgs& args) {
   Scene scene;
   if (!args.frames_file.empty()) {
     scene = LoadScene(args.frames_file);
+    scene.ResolveNames(rig->target_names());
     collider_specs.insert(collider_specs.begin(), scene.colliders.begin(), scene.colliders.end());
   }
   std::vector<Collider> colliders;
@@ -153,7 +158,7 @@ int RunBlend(const BlendArgs& args) {
   std::vector<Pin> pins;
   for (const auto& spec : args.pins) pins.push_back(ParsePin(spec));
 
-  std::vector<double> weights = args.weights;
+  std::vector<double> weights = ResolveWeights(ParseWeightItems(args.weights), rig->target_names(), "--weights");
   if (weights.empty() && rig->num_targets() == 1) weights = {1.0};
   if (weights.empty() && args.frames_file.empty()) {
     throw Error(ErrorCode::kInvalidInput,
@@ -177,7 +182,7 @@ int RunBlend(const BlendArgs& args) {
       throw Error(e.code(), fmt::format("frames[{}]: {}", i, e.what()));
     }
   }
-  FrameOutput output(args.out, many, rig->rest().faces, static_cast<int>(rig->rest().vertices.rows()));
+  FrameOutput output(args.out, many, rig->rest().faces, static_cast<int>(rig->rest().vertices.rows()), args.timing);
 
   bool all_converged = true;
   Points positions;
@@ -205,13 +210,14 @@ Runner AddBlendCommand(CLI::App& app) {
   cmd->add_option("--target", args->targets, "a blendshape target; repeat for more (order = weight order)");
   cmd->add_option("--weights", args->weights,
                   "one weight per target, comma separated (with --rig: per target that is not a combination, in "
-                  "file order); the rest shape gets 1 - sum (default 1 for a single target). With --sweep: the end "
-                  "of the sweep")
+                  "file order), or by name: jawOpen=0.7,mouthSmile_L=0.3 (the others 0); the rest shape gets 1 - "
+                  "sum (default 1 for a single target). With --sweep: the end of the sweep")
       ->delimiter(',');
   cmd->add_option("--out", args->out,
                   "output OBJ file, or directory with --sweep/--frames; a path ending in .pc2 writes every frame "
-                  "into one PC2 point cache instead (frame = index + 1)")
+                  "into one PC2 point cache instead (see --start-frame)")
       ->required();
+  AddCacheTimingOptions(cmd, &args->timing);
   cmd->add_option("--sweep", args->sweep,
                   "solve N frames with alpha = 0 .. 1 times the weights, each alone, into "
                   "OUT/frame_0000.obj ...")
@@ -225,6 +231,9 @@ Runner AddBlendCommand(CLI::App& app) {
   cmd->add_flag("--no-bending", args->no_bending, "omit bending springs");
   cmd->add_flag("--no-interior", args->no_interior, "surface springs only (no tetrahedralized volume)");
   cmd->add_flag("--no-anchor", args->no_anchor, "no internal anchor (fixed vertices or the gauge hold the rig)");
+  cmd->add_flag("--hold-outer-rim", args->hold_outer_rim,
+                "hold an open surface's outer rim (a face mask's; its holes stay free) on the linear blend: the rig "
+                "is then held whatever its targets move, so colliders and pins work");
   cmd->add_option("--bending-stiffness", args->bending_stiffness,
                   "stiffness of bending springs relative to structure springs");
   cmd->add_option("--tolerance", args->tolerance, "residual tolerance (largest force, strain units)");

@@ -21,10 +21,29 @@ auto AsInputError(Fn&& fn) {
 
 }  // namespace
 
-FrameOutput::FrameOutput(std::string out, bool many, Faces faces, int vertices)
+void AddCacheTimingOptions(CLI::App* command, CacheTiming* timing) {
+  const auto given = [timing](const auto&) { timing->given = true; };
+  command->add_option("--start-frame", timing->start_frame, "a .pc2 output's first frame (default 1)")
+      ->each(given)
+      ->check(CLI::Range(-1e7, 1e7));
+  command->add_option("--sample-rate", timing->sample_rate,
+                      "a .pc2 output's frames per sample (default 1; 0.5 = two samples per frame)")
+      ->each(given)
+      ->check(CLI::Range(1e-6, 1e6));
+}
+
+FrameOutput::FrameOutput(std::string out, bool many, Faces faces, int vertices, const CacheTiming& timing)
     : out_(std::move(out)), many_(many), faces_(std::move(faces)) {
   if (IsPointCachePath(out_)) {
-    cache_ = AsInputError([&] { return std::make_unique<PointCacheWriter>(out_, vertices); });
+    cache_ = AsInputError([&] {
+      return std::make_unique<PointCacheWriter>(out_, vertices, static_cast<float>(timing.start_frame),
+                                                static_cast<float>(timing.sample_rate));
+    });
+  } else if (timing.given) {
+    throw Error(ErrorCode::kInvalidInput,
+                fmt::format("--start-frame and --sample-rate place a point cache's samples; --out {} is not a .pc2 "
+                            "file",
+                            out_));
   } else if (many_) {
     std::error_code ec;
     std::filesystem::create_directories(out_, ec);

@@ -2,6 +2,7 @@
 
 #include <fmt/format.h>
 
+#include <algorithm>
 #include <fstream>
 #include <nlohmann/json.hpp>
 #include <sstream>
@@ -41,6 +42,75 @@ Scene LoadScene(const std::string& path) {
   return ParseScene(text.str(), path);
 }
 
+namespace {
+
+std::string Known(const std::vector<std::string>& names) {
+  std::string out;
+  for (const auto& n : names) out += (out.empty() ? "" : ", ") + n;
+  return out.empty() ? "none" : out;
+}
+
+}  // namespace
+
+Weights ParseWeightItems(const std::vector<std::string>& items) {
+  Weights out;
+  for (size_t i = 0; i < items.size(); ++i) {
+    const std::string& item = items[i];
+    const auto equals = item.find('=');
+    const bool named = equals != std::string::npos;
+    if (i > 0 && named != out.by_name) {
+      throw Error(ErrorCode::kInvalidInput,
+                  fmt::format("--weights: '{}': give every weight by name (NAME=W,...) or none (W,W,...)", item));
+    }
+    out.by_name = named;
+    const std::string number = named ? item.substr(equals + 1) : item;
+    double value = 0.0;
+    try {
+      size_t used = 0;
+      value = std::stod(number, &used);
+      if (used != number.size()) throw std::invalid_argument(number);
+    } catch (const std::exception&) {
+      throw Error(ErrorCode::kInvalidInput,
+                  fmt::format("--weights: '{}' is not {}", item, named ? "NAME=NUMBER" : "a number"));
+    }
+    if (named) {
+      const std::string name = item.substr(0, equals);
+      if (name.empty()) throw Error(ErrorCode::kInvalidInput, fmt::format("--weights: '{}' has no target name", item));
+      out.named.emplace_back(name, value);
+    } else {
+      out.values.push_back(value);
+    }
+  }
+  return out;
+}
+
+std::vector<double> ResolveWeights(const Weights& weights, const std::vector<std::string>& names,
+                                   const std::string& where) {
+  if (!weights.by_name) return weights.values;
+  std::vector<double> out(names.size(), 0.0);
+  std::vector<char> seen(names.size(), 0);
+  for (const auto& [name, value] : weights.named) {
+    const auto it = std::find(names.begin(), names.end(), name);
+    if (it == names.end()) {
+      throw Error(ErrorCode::kInvalidInput,
+                  fmt::format("{}: '{}' is not a target of this character (targets: {})", where, name, Known(names)));
+    }
+    const size_t t = static_cast<size_t>(it - names.begin());
+    if (seen[t]) throw Error(ErrorCode::kInvalidInput, fmt::format("{}: '{}' is given twice", where, name));
+    seen[t] = 1;
+    out[t] = value;
+  }
+  return out;
+}
+
+void Scene::ResolveNames(const std::vector<std::string>& names) {
+  for (size_t i = 0; i < frames.size() && i < written_weights.size(); ++i) {
+    if (written_weights[i].by_name) {
+      frames[i].weights = ResolveWeights(written_weights[i], names, fmt::format("{}: frames[{}].weights", source, i));
+    }
+  }
+}
+
 Scene ParseScene(const std::string& text, const std::string& path) {
   nlohmann::json doc;
   try {
@@ -48,53 +118,92 @@ Scene ParseScene(const std::string& text, const std::string& path) {
   } catch (const nlohmann::json::exception& e) {
     throw Error(ErrorCode::kInvalidInput, path + ": not valid JSON: " + e.what());
   }
-  Scene scene;
-  auto vec3 = [&](const nlohmann::json& j, const std::string& where) {
-    if (!j.is_array() || j.size() != 3) throw Error(ErrorCode::kInvalidInput, path + ": " + where + " must be [x, y, z]");
-    return Eigen::Vector3d(j[0].get<double>(), j[1].get<double>(), j[2].get<double>());
+  const auto invalid = [&](const std::string& where, const std::string& what) {
+    return Error(ErrorCode::kInvalidInput, fmt::format("{}: {} {}", path, where, what));
   };
-  try {
-    if (doc.contains("colliders")) scene.colliders = doc["colliders"].get<std::vector<std::string>>();
-    if (!doc.contains("frames") || !doc["frames"].is_array() || doc["frames"].empty()) {
-      throw Error(ErrorCode::kInvalidInput, path + ": needs a non-empty \"frames\" array");
+  const auto number = [&](const nlohmann::json& j, const std::string& where) {
+    if (!j.is_number()) throw invalid(where, fmt::format("must be a number, not {}", j.type_name()));
+    return j.get<double>();
+  };
+  const auto vec3 = [&](const nlohmann::json& j, const std::string& where) {
+    if (!j.is_array() || j.size() != 3) throw invalid(where, "must be [x, y, z]");
+    return Eigen::Vector3d(number(j[0], where + "[0]"), number(j[1], where + "[1]"), number(j[2], where + "[2]"));
+  };
+  const auto array = [&](const nlohmann::json& parent, const char* key, const std::string& where) {
+    const nlohmann::json& j = parent[key];
+    if (!j.is_array()) throw invalid(where, fmt::format("must be a list, not {}", j.type_name()));
+    return j;
+  };
+  if (!doc.is_object()) throw invalid("the document", "must be an object with a \"frames\" list");
+  Scene scene;
+  scene.source = path;
+  if (doc.contains("colliders")) {
+    const nlohmann::json colliders = array(doc, "colliders", "colliders");
+    for (size_t c = 0; c < colliders.size(); ++c) {
+      if (!colliders[c].is_string()) throw invalid(fmt::format("colliders[{}]", c), "must be a string such as \"sphere:0,0,0,1\"");
+      scene.colliders.push_back(colliders[c].get<std::string>());
     }
-    for (size_t i = 0; i < doc["frames"].size(); ++i) {
-      const auto& f = doc["frames"][i];
-      const std::string where = fmt::format("frames[{}]", i);
-      Frame frame;
-      if (!f.contains("weights")) throw Error(ErrorCode::kInvalidInput, path + ": " + where + " has no \"weights\"");
-      frame.weights = f["weights"].get<std::vector<double>>();
-      if (f.contains("colliders")) {
-        for (size_t c = 0; c < f["colliders"].size(); ++c) {
-          const auto& m = f["colliders"][c];
-          RigidTransform motion;
-          const std::string cw = fmt::format("{}.colliders[{}]", where, c);
-          if (m.contains("translation")) motion.translation = vec3(m["translation"], cw + ".translation");
-          if (m.contains("rotation")) {
-            const auto& q = m["rotation"];
-            if (!q.is_array() || q.size() != 4) {
-              throw Error(ErrorCode::kInvalidInput, path + ": " + cw + ".rotation must be a quaternion [w, x, y, z]");
-            }
-            motion.rotation = Eigen::Quaterniond(q[0].get<double>(), q[1].get<double>(), q[2].get<double>(),
-                                                 q[3].get<double>());
-            if (!(motion.rotation.norm() > 1e-12)) {
-              throw Error(ErrorCode::kInvalidInput, path + ": " + cw + ".rotation is zero");
-            }
-            motion.rotation.normalize();
-          }
-          frame.collider_transforms.push_back(motion);
-        }
+  }
+  if (!doc.contains("frames") || !doc["frames"].is_array() || doc["frames"].empty()) {
+    throw Error(ErrorCode::kInvalidInput, path + ": needs a non-empty \"frames\" array");
+  }
+  const nlohmann::json& frames = doc["frames"];
+  for (size_t i = 0; i < frames.size(); ++i) {
+    const auto& f = frames[i];
+    const std::string where = fmt::format("frames[{}]", i);
+    if (!f.is_object()) throw invalid(where, "must be an object with \"weights\"");
+    Frame frame;
+    Weights written;
+    if (!f.contains("weights")) throw Error(ErrorCode::kInvalidInput, path + ": " + where + " has no \"weights\"");
+    const nlohmann::json& w = f["weights"];
+    if (w.is_array()) {
+      for (size_t k = 0; k < w.size(); ++k) written.values.push_back(number(w[k], fmt::format("{}.weights[{}]", where, k)));
+      frame.weights = written.values;
+    } else if (w.is_object()) {
+      written.by_name = true;
+      for (const auto& [name, value] : w.items()) {
+        written.named.emplace_back(name, number(value, fmt::format("{}.weights.{}", where, name)));
       }
-      if (f.contains("pins")) {
-        for (size_t k = 0; k < f["pins"].size(); ++k) {
-          const auto& p = f["pins"][k];
-          frame.pins.push_back({p.at("vertex").get<int>(), vec3(p.at("position"), fmt::format("{}.pins[{}].position", where, k))});
-        }
-      }
-      scene.frames.push_back(std::move(frame));
+    } else {
+      throw invalid(where + ".weights",
+                    fmt::format("must be a list (one weight per target) or an object of target names to weights, "
+                                "not {}",
+                                w.type_name()));
     }
-  } catch (const nlohmann::json::exception& e) {
-    throw Error(ErrorCode::kInvalidInput, path + ": " + e.what());
+    if (f.contains("colliders")) {
+      const nlohmann::json colliders = array(f, "colliders", where + ".colliders");
+      for (size_t c = 0; c < colliders.size(); ++c) {
+        const auto& m = colliders[c];
+        const std::string cw = fmt::format("{}.colliders[{}]", where, c);
+        if (!m.is_object()) throw invalid(cw, "must be an object with \"translation\" and/or \"rotation\"");
+        RigidTransform motion;
+        if (m.contains("translation")) motion.translation = vec3(m["translation"], cw + ".translation");
+        if (m.contains("rotation")) {
+          const auto& q = m["rotation"];
+          if (!q.is_array() || q.size() != 4) throw invalid(cw + ".rotation", "must be a quaternion [w, x, y, z]");
+          const std::string qw = cw + ".rotation";
+          motion.rotation = Eigen::Quaterniond(number(q[0], qw + "[0]"), number(q[1], qw + "[1]"),
+                                               number(q[2], qw + "[2]"), number(q[3], qw + "[3]"));
+          if (!(motion.rotation.norm() > 1e-12)) throw invalid(cw + ".rotation", "is zero");
+          motion.rotation.normalize();
+        }
+        frame.collider_transforms.push_back(motion);
+      }
+    }
+    if (f.contains("pins")) {
+      const nlohmann::json pins = array(f, "pins", where + ".pins");
+      for (size_t k = 0; k < pins.size(); ++k) {
+        const auto& p = pins[k];
+        const std::string pw = fmt::format("{}.pins[{}]", where, k);
+        if (!p.is_object() || !p.contains("vertex") || !p.contains("position")) {
+          throw invalid(pw, "must be {\"vertex\": i, \"position\": [x, y, z]}");
+        }
+        if (!p["vertex"].is_number_integer()) throw invalid(pw + ".vertex", "must be a vertex index");
+        frame.pins.push_back({p["vertex"].get<int>(), vec3(p["position"], pw + ".position")});
+      }
+    }
+    scene.frames.push_back(std::move(frame));
+    scene.written_weights.push_back(std::move(written));
   }
   return scene;
 }

@@ -2,6 +2,7 @@
 #pragma once
 
 #include <string>
+#include <utility>
 #include <vector>
 
 #include "springblend/solve.h"
@@ -11,12 +12,34 @@ namespace springblend::cli {
 // "VERTEX:x,y,z" -> a pin; throws Error naming the argument.
 Pin ParsePin(const std::string& spec);
 
+// Weights as written: one per target in weight order, or by target name (the targets not named get 0).
+struct Weights {
+  std::vector<double> values;
+  std::vector<std::pair<std::string, double>> named;
+  bool by_name = false;
+};
+
+// --weights items: numbers ("0.5", "0.2") or NAME=NUMBER ("jawOpen=0.7"), not mixed; throws Error naming the
+// item.
+Weights ParseWeightItems(const std::vector<std::string>& items);
+
+// One weight per target: positional weights as they are (their count is checked with the frame), named ones
+// placed by `names` (the character's targets that take weights). An unknown or repeated name is refused,
+// naming `where` and the known names.
+std::vector<double> ResolveWeights(const Weights& weights, const std::vector<std::string>& names,
+                                   const std::string& where);
+
 // The frames file: {"colliders": ["sphere:...", ...],
-//                   "frames": [{"weights": [...], "colliders": [{"translation": [x,y,z],
+//                   "frames": [{"weights": [...] or {"NAME": w, ...}, "colliders": [{"translation": [x,y,z],
 //                               "rotation": [w,x,y,z]}, ...], "pins": [{"vertex": i, "position": [x,y,z]}]}]}
+// Errors name the file and the field (`frames[3].weights.jawOpen`).
 struct Scene {
+  std::string source;
   std::vector<std::string> colliders;
-  std::vector<Frame> frames;
+  std::vector<Frame> frames;             // weights filled by ResolveNames when given by name
+  std::vector<Weights> written_weights;  // per frame, as written
+  // Places every frame's named weights by the character's target names (errors name the file and frame).
+  void ResolveNames(const std::vector<std::string>& names);
 };
 Scene LoadScene(const std::string& path);
 // The same from memory; source names it in messages.

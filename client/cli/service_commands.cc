@@ -31,10 +31,12 @@ struct RemoteArgs {
   std::string rig, rest, name;
   std::vector<std::string> targets;
   std::vector<int> fixed;
-  bool no_interior = false, no_anchor = false, no_target_paths = false;
+  bool no_interior = false, no_anchor = false, no_target_paths = false, hold_outer_rim = false;
+  double static_tolerance = 0.0, bending_stiffness = 0.0;  // 0: the server's defaults
   // solve
   std::string character, out, frames_file;
-  std::vector<double> weights;
+  std::vector<std::string> weights;  // numbers, or NAME=NUMBER
+  CacheTiming timing;
   int sweep = 0;
   std::vector<std::string> colliders, pins;
   double tolerance = 0.0;
@@ -105,7 +107,10 @@ nlohmann::json CharacterJson(const v1::Character& c) {
           {"precompute_ms", s.precompute_ms()},
           {"paths_loaded", s.paths_loaded()},
           {"path_samples", s.path_samples()},
-          {"path_ms", s.path_ms()}};
+          {"path_ms", s.path_ms()},
+          {"static_vertices", s.static_vertices()},
+          {"rim_vertices", s.rim_vertices()},
+          {"notes", std::vector<std::string>(s.notes().begin(), s.notes().end())}};
 }
 
 // The command's client: the channel its flags describe, its token and its deadline per call.
@@ -146,6 +151,9 @@ int RunUpload(const RemoteArgs& args) {
   options.set_no_interior(args.no_interior);
   options.set_no_anchor(args.no_anchor);
   options.set_no_target_paths(args.no_target_paths);
+  options.set_hold_outer_rim(args.hold_outer_rim);
+  options.set_static_tolerance(args.static_tolerance);
+  options.set_bending_stiffness(args.bending_stiffness);
   v1::Character c;
   if (!args.rig.empty()) {
     if (!args.rest.empty() || !args.targets.empty()) {
@@ -173,6 +181,8 @@ int RunUpload(const RemoteArgs& args) {
       return client.Upload(rest, targets, options, args.name.empty() ? rest.name : args.name, progress);
     });
   }
+  // The rig builder's notes (a floating rig, the held rim, ...) are for the person uploading: say them.
+  for (const std::string& note : c.summary().notes()) std::cerr << "springblend upload: note: " << note << std::endl;
   std::cout << CharacterJson(c).dump() << std::endl;
   return kExitOk;
 }
@@ -190,10 +200,13 @@ int RunSolve(const RemoteArgs& args) {
   std::vector<std::string> collider_specs;
   if (!args.frames_file.empty()) {
     Scene scene = LoadScene(args.frames_file);
+    scene.ResolveNames({character.target_names().begin(), character.target_names().end()});
     frames = std::move(scene.frames);
     collider_specs = scene.colliders;
   } else {
-    std::vector<double> weights = args.weights;
+    std::vector<double> weights = ResolveWeights(
+        ParseWeightItems(args.weights), {character.target_names().begin(), character.target_names().end()},
+        "--weights");
     if (weights.empty() && character.target_names_size() == 1) weights = {1.0};
     if (weights.empty()) {
       throw Error(ErrorCode::kInvalidInput, fmt::format("--weights is required: the character has {} targets",
@@ -217,7 +230,8 @@ int RunSolve(const RemoteArgs& args) {
   request.mutable_options()->set_linear(args.linear);
   request.mutable_options()->set_with_normals(args.normals);
 
-  FrameOutput output(args.out, /*many=*/true, faces, static_cast<int>(character.summary().surface_vertices()));
+  FrameOutput output(args.out, /*many=*/true, faces, static_cast<int>(character.summary().surface_vertices()),
+                     args.timing);
   const bool progress = isatty(STDERR_FILENO) && isatty(STDOUT_FILENO);
   const auto start = std::chrono::steady_clock::now();
   bool all_converged = true;
@@ -359,6 +373,15 @@ std::vector<std::pair<std::string, Runner>> AddServiceCommands(CLI::App& app) {
   upload->add_option("--fixed", args->fixed, "fixed vertices")->delimiter(',');
   upload->add_flag("--no-interior", args->no_interior, "surface springs only");
   upload->add_flag("--no-anchor", args->no_anchor, "no internal anchor");
+  upload->add_flag("--hold-outer-rim", args->hold_outer_rim,
+                   "hold an open surface's outer rim (a face mask's; its holes stay free) on the linear blend: the "
+                   "rig is then held whatever its targets move, so colliders and pins work");
+  upload->add_option("--static-tolerance", args->static_tolerance,
+                     "vertices moving less than this fraction of the diagonal in every target are fixed (default "
+                     "1e-6); negative disables");
+  upload->add_option("--bending-stiffness", args->bending_stiffness,
+                     "stiffness of bending springs relative to structure springs (default 1)")
+      ->check(CLI::PositiveNumber);
   upload->add_flag("--no-target-paths", args->no_target_paths,
                    "build no target paths: a faster upload, slower frames (still stateless)");
   runners.emplace_back("upload", Guarded("upload", args, RunUpload));
@@ -367,15 +390,19 @@ std::vector<std::pair<std::string, Runner>> AddServiceCommands(CLI::App& app) {
       "solve", "solve frames on the server; writes OUT/frame_0000.obj ... (or OUT.pc2) and JSON lines");
   server_option(solve);
   solve->add_option("--character", args->character, "character id from upload")->required();
-  solve->add_option("--weights", args->weights, "one weight per target (the sweep's end with --sweep)")->delimiter(',');
+  solve->add_option("--weights", args->weights,
+                    "one weight per target, or by name: jawOpen=0.7,mouthSmile_L=0.3 (the others 0); the sweep's end "
+                    "with --sweep")
+      ->delimiter(',');
   solve->add_option("--sweep", args->sweep, "N frames from the rest shape to the weights")->check(CLI::Range(1, 100000));
   solve->add_option("--frames", args->frames_file, "a JSON scene file (as for blend)");
   solve->add_option("--collider", args->colliders, "an obstacle (as for blend); repeatable");
   solve->add_option("--pin", args->pins, "VERTEX:x,y,z in every frame; repeatable");
   solve->add_option("--out", args->out,
                     "output directory (OUT/frame_0000.obj ...), or a path ending in .pc2: one PC2 point cache of "
-                    "every frame (frame = index + 1)")
+                    "every frame (see --start-frame)")
       ->required();
+  AddCacheTimingOptions(solve, &args->timing);
   solve->add_option("--tolerance", args->tolerance, "residual tolerance (server default 1e-6)");
   solve->add_option("--max-iterations", args->max_iterations, "Newton iterations per frame");
   solve->add_flag("--linear", args->linear, "the linear blendshape");

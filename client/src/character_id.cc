@@ -92,9 +92,10 @@ std::string CharacterId(const TriangleMesh& rest, const std::vector<RigTarget>& 
       for (const std::string& driver : t.combination) w.PutString(driver);
     }
   }
-  if (options.no_target_paths()) {
+  if (options.no_target_paths() || options.hold_outer_rim()) {
     w.PutBytes(kOptionsMarker, sizeof(kOptionsMarker));
-    w.Put<std::uint8_t>(0);
+    w.Put<std::uint8_t>(options.no_target_paths() ? 0 : 1);
+    if (options.hold_outer_rim()) w.Put<std::uint8_t>(1);
   }
   return w.HexSha256();
 }

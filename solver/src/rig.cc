@@ -169,6 +169,12 @@ std::shared_ptr<const Rig> RigBuilder::Build(TriangleMesh rest, std::vector<Targ
   }
   builder.ComputeRestLengths();
   builder.ApplyMasks();
+  if (s.boundary_mode == BoundaryMode::kFloating) {
+    s.notes.push_back(
+        "the rig is floating: no vertex is static in every target, none is fixed and it has no internal anchor, "
+        "so frames with colliders or pins are refused; hold it by fixing vertices (fixed_vertices, --fixed) or, "
+        "for an open surface such as a face mask, by holding its outer rim (hold_outer_rim, --hold-outer-rim)");
+  }
   s.rig_bytes = EstimateRigBytes(*rig);
   if (options.target_paths) {
     std::string why;

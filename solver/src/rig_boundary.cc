@@ -85,11 +85,10 @@ void RigBuilder::BuildBoundary() {
     if (!fixed[v]) ++s.user_fixed_vertices;
     fixed[v] = 1;
   }
-  if (rig.options_.hold_outer_rim && rig.options_.interior && s.interior_vertices == 0 && s.cap_vertices == 0 &&
-      s.boundary_edges > 0) {
-    // An open sheet with no volume behind it: hold its outer rim on the linear blend, as a face mask is
-    // stitched to the head it belongs to. Without it the free rim makes the sheet floppy and its
-    // equilibrium ambiguous.
+  if (rig.options_.hold_outer_rim && s.boundary_edges > 0) {
+    // An open surface (a face mask, with a shell, a capped volume or neither): hold its outer rim on the linear
+    // blend, as a mask is stitched to the head it belongs to. The rig is then held whatever its targets move
+    // (colliders and pins need that), and a sheet's free rim no longer makes it floppy.
     int held = 0;
     for (int v : OuterRim(rig.rest_.faces, n)) {
       if (!fixed[v]) ++held;

@@ -94,7 +94,8 @@ class Solver::Impl {
     if (!colliders.empty() && rig_->boundary_mode() == BoundaryMode::kFloating) {
       throw Error(ErrorCode::kInvalidInput,
                   "colliders need a rig held by fixed vertices or an internal anchor; this rig has neither "
-                  "(give it fixed vertices, or an interior so it gets an anchor)");
+                  "(give it fixed vertices, hold an open surface's outer rim with hold_outer_rim / "
+                  "--hold-outer-rim, or give it an interior so it gets an anchor)");
     }
     colliders_ = std::move(colliders);
   }

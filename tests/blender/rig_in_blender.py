@@ -80,7 +80,15 @@ def main():
         scene.frame_set(frame)
         shown.append(shown_positions(obj))
     np.save(config["output"], np.stack(shown))
-    pathlib.Path(config["result"]).write_text(json.dumps({"character": obj.springblend_character}))
+    character = obj.springblend_character
+    # Held vertices: the vertex group springblend_fixed and Hold Outer Rim make another character.
+    group = obj.vertex_groups.new(name="springblend_fixed")
+    group.add([0, 1, 2], 1.0, "REPLACE")
+    group.add([3], 0.25, "REPLACE")  # below 0.5: not held
+    obj.springblend_hold_outer_rim = True
+    check(bpy.ops.springblend.upload() == {"FINISHED"}, "upload with held vertices failed")
+    pathlib.Path(config["result"]).write_text(json.dumps({"character": character,
+                                                          "held_character": obj.springblend_character}))
     print("rig_in_blender: exported, uploaded and baked", len(config["frames"]), "frames")
 
 

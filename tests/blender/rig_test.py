@@ -39,6 +39,14 @@ def main():
         line = testing.cli("upload", "--server", server.address, "--rig", exported).splitlines()[-1]
         if json.loads(line)["id"] != character:
             raise SystemExit(f"rig_test: the CLI's upload of the exported rig is {line}, not the add-on's {character}")
+        # The vertex group springblend_fixed and Hold Outer Rim are the CLI's --fixed and --hold-outer-rim.
+        held = json.loads(testing.cli("upload", "--server", server.address, "--rig", exported, "--fixed", "0,1,2",
+                                      "--hold-outer-rim").splitlines()[-1])
+        if held["id"] != json.load(open(config["result"]))["held_character"]:
+            raise SystemExit(f"rig_test: the CLI's upload with --fixed 0,1,2 --hold-outer-rim is {held['id']}, not "
+                             "the add-on's character with the group springblend_fixed and Hold Outer Rim")
+        if held["rim_vertices"] <= 0:
+            raise SystemExit(f"rig_test: no outer rim held: {held}")
         expected = testing.cli_blend_rig(exported, WEIGHTS, directory)
     runner.largest_error(baked, expected, "rig_test (shape keys of a production rig)")
     sculpt = testing.load_obj(testing.CYLINDER / "poses-2_cylinder-4.obj")[0]

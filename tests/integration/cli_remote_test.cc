@@ -13,6 +13,7 @@
 
 #include "integration/cli_process.h"
 #include "integration/server_process.h"
+#include "springblend/point_cache.h"
 #include "test_util.h"
 
 namespace springblend {
@@ -217,6 +218,51 @@ TEST_F(CliRemoteTest, RefusalsAreNamedWithAHint) {
   const CliRun no_ca = RunCli("list --tls-ca " + dir_.File("missing-ca.pem") + remote, dir_);
   EXPECT_EQ(no_ca.exit_code, 2);
   EXPECT_THAT(no_ca.stderr_text, HasSubstr("--tls-ca: cannot open " + dir_.File("missing-ca.pem")));
+}
+
+// The pipeline habits of issue-free shots: an upload whose targets move every vertex is said to be floating and
+// refuses colliders; the same meshes uploaded with --hold-outer-rim (and the upload's other rig options) take
+// them; weights go by target name; the point cache starts at the shot's first frame.
+TEST_F(CliRemoteTest, AHeldRimUploadTakesCollidersAndNamedWeightsIntoAShotsPointCache) {
+  ServerProcess server(cache_.path().string());
+  ASSERT_FALSE(server.address().empty());
+  const std::string remote = " --server " + server.address() + " --timeout 120";
+  const std::string meshes = " --rest " + DataPath("cylinder/cylinder.obj") + " --target " +
+                             DataPath("cylinder/poses-1_cylinder-2.obj") + " --no-anchor --no-target-paths";
+  const CliRun floating = RunCli("upload" + meshes + remote, dir_);
+  ASSERT_EQ(floating.exit_code, 0) << floating.stderr_text;
+  EXPECT_EQ(floating.lines.at(0)["boundary_mode"], "floating");
+  EXPECT_THAT(floating.stderr_text, HasSubstr("springblend upload: note: the rig is floating"));
+  const std::string collider = " --collider sphere:0,0.75,0.75,0.3";
+  const CliRun refused = RunCli("solve --character " + floating.lines.at(0)["id"].get<std::string>() +
+                                    " --weights poses-1_cylinder-2=1" + collider + " --out " + dir_.File("no") + remote,
+                                dir_);
+  EXPECT_EQ(refused.exit_code, 2);
+  EXPECT_THAT(refused.stderr_text, HasSubstr("--hold-outer-rim"));
+
+  const CliRun held =
+      RunCli("upload" + meshes + " --hold-outer-rim --static-tolerance 1e-5 --bending-stiffness 0.8" + remote, dir_);
+  ASSERT_EQ(held.exit_code, 0) << held.stderr_text;
+  EXPECT_EQ(held.lines.at(0)["boundary_mode"], "fixed_vertices");
+  EXPECT_GT(held.lines.at(0)["rim_vertices"].get<int>(), 0);
+  EXPECT_THAT(held.stderr_text, Not(HasSubstr("floating")));
+  EXPECT_NE(held.lines.at(0)["id"], floating.lines.at(0)["id"]);
+  const std::string shot = dir_.File("shot.pc2");
+  const CliRun solved = RunCli("solve --character " + held.lines.at(0)["id"].get<std::string>() +
+                                   " --weights poses-1_cylinder-2=1 --sweep 3 --start-frame 1001" + collider +
+                                   " --out " + shot + remote,
+                               dir_);
+  ASSERT_EQ(solved.exit_code, 0) << solved.stderr_text;
+  ASSERT_EQ(solved.lines.size(), 3u);
+  for (const auto& line : solved.lines) EXPECT_TRUE(line["converged"].get<bool>()) << line.dump();
+  const PointCache cache = ReadPointCache(shot);
+  EXPECT_EQ(cache.start_frame, 1001.0f);
+  EXPECT_EQ(cache.samples.size(), 3u);
+  const CliRun unknown = RunCli("solve --character " + held.lines.at(0)["id"].get<std::string>() +
+                                    " --weights jawOpen=1 --out " + dir_.File("unknown") + remote,
+                                dir_);
+  EXPECT_EQ(unknown.exit_code, 2);
+  EXPECT_THAT(unknown.stderr_text, HasSubstr("'jawOpen' is not a target of this character (targets: poses-1_cylinder-2)"));
 }
 
 }  // namespace

@@ -13,6 +13,7 @@ namespace springblend {
 namespace {
 
 using ::testing::HasSubstr;
+using ::testing::Not;
 using testing::CliRun;
 using testing::DataPath;
 using testing::RunCli;
@@ -156,6 +157,91 @@ TEST(CliBlend, ABadFrameAnywhereInTheFileIsRefusedBeforeAnythingIsWritten) {
   EXPECT_EQ(run.exit_code, 2);
   EXPECT_THAT(run.stderr_text, HasSubstr("frames[1]: weights has 2 entries"));
   EXPECT_FALSE(std::filesystem::exists(dir.File("out/frame_0000.obj")));
+}
+
+// Weights by target name (the mesh file's name; the others 0) give the same frame as positional ones, in
+// --weights and in a frames file; unknown names and badly typed fields are refused naming the field.
+TEST(CliBlend, WeightsByNameAreTheTargetsOwnAndBadFieldsAreNamed) {
+  TempDir dir;
+  const std::string rig = "blend --rest " + kRest + " --target " + kBend + " --target " + kTwist;
+  const CliRun positional = RunCli(rig + " --weights 0.9,0.4 --out " + dir.File("positional.obj"), dir);
+  ASSERT_EQ(positional.exit_code, 0) << positional.stderr_text;
+  const CliRun named =
+      RunCli(rig + " --weights poses-2_cylinder-3=0.4,poses-2_cylinder-1=0.9 --out " + dir.File("named.obj"), dir);
+  ASSERT_EQ(named.exit_code, 0) << named.stderr_text;
+  EXPECT_EQ(named.lines.at(0)["weights"], positional.lines.at(0)["weights"]);
+  EXPECT_EQ(testing::MaxDistance(LoadMesh(dir.File("named.obj")).vertices, LoadMesh(dir.File("positional.obj")).vertices),
+            0.0);
+  const std::string scene = dir.Write("named.json", R"({"frames": [{"weights": {"poses-2_cylinder-1": 0.9,
+                                                                              "poses-2_cylinder-3": 0.4}},
+                                                                 {"weights": {"poses-2_cylinder-3": 0.4}}]})");
+  const CliRun frames = RunCli(rig + " --frames " + scene + " --out " + dir.File("frames"), dir);
+  ASSERT_EQ(frames.exit_code, 0) << frames.stderr_text;
+  ASSERT_EQ(frames.lines.size(), 2u);
+  EXPECT_EQ(frames.lines[0]["weights"], positional.lines.at(0)["weights"]);
+  EXPECT_EQ(frames.lines[1]["weights"], nlohmann::json::array({0.0, 0.4}));  // the target not named is at 0
+  EXPECT_EQ(testing::MaxDistance(LoadMesh(dir.File("frames/frame_0000.obj")).vertices,
+                                 LoadMesh(dir.File("positional.obj")).vertices),
+            0.0);
+
+  const CliRun unknown = RunCli(rig + " --weights jawOpen=1 --out " + dir.File("x.obj"), dir);
+  EXPECT_EQ(unknown.exit_code, 2);
+  EXPECT_THAT(unknown.stderr_text,
+              HasSubstr("--weights: 'jawOpen' is not a target of this character (targets: poses-2_cylinder-1, "
+                        "poses-2_cylinder-3)"));
+  const CliRun mixed = RunCli(rig + " --weights poses-2_cylinder-1=1,0.5 --out " + dir.File("x.obj"), dir);
+  EXPECT_EQ(mixed.exit_code, 2);
+  EXPECT_THAT(mixed.stderr_text, HasSubstr("by name (NAME=W,...) or none"));
+  const std::string typo = dir.Write("typo.json", R"({"frames": [{"weights": [0.5, 0.1]},
+                                                               {"weights": {"poses-2_cylinder-1": "0.5"}}]})");
+  const CliRun typed = RunCli(rig + " --frames " + typo + " --out " + dir.File("typo"), dir);
+  EXPECT_EQ(typed.exit_code, 2);
+  EXPECT_THAT(typed.stderr_text, HasSubstr(typo + ": frames[1].weights.poses-2_cylinder-1 must be a number, not string"));
+  const std::string wrong = dir.Write("wrong.json", R"({"frames": [{"weights": {"nope": 0.5}}]})");
+  const CliRun refused = RunCli(rig + " --frames " + wrong + " --out " + dir.File("wrong"), dir);
+  EXPECT_EQ(refused.exit_code, 2);
+  EXPECT_THAT(refused.stderr_text, HasSubstr(wrong + ": frames[0].weights: 'nope' is not a target"));
+  const std::string pins = dir.Write("pins.json", R"({"frames": [{"weights": [0.5, 0], "pins": [{"vertex": 3,
+                                                                  "position": [1, "2", 3]}]}]})");
+  const CliRun pin = RunCli(rig + " --frames " + pins + " --out " + dir.File("pins"), dir);
+  EXPECT_EQ(pin.exit_code, 2);
+  EXPECT_THAT(pin.stderr_text, HasSubstr("frames[0].pins[0].position[1] must be a number"));
+  EXPECT_FALSE(std::filesystem::exists(dir.File("pins/frame_0000.obj")));
+}
+
+// A point cache placed on a shot's timeline: --start-frame and --sample-rate go into its header; they are
+// refused for OBJ output, which has no timeline.
+TEST(CliBlend, PointCacheStartsAtTheShotsFirstFrame) {
+  TempDir dir;
+  const std::string args = "blend --rest " + kRest + " --target " + kBend + " --sweep 3 --start-frame 1001 ";
+  const CliRun run = RunCli(args + "--sample-rate 0.5 --out " + dir.File("shot.pc2"), dir);
+  ASSERT_EQ(run.exit_code, 0) << run.stderr_text;
+  const PointCache read = ReadPointCache(dir.File("shot.pc2"));
+  EXPECT_EQ(read.start_frame, 1001.0f);
+  EXPECT_EQ(read.sample_rate, 0.5f);
+  EXPECT_EQ(read.samples.size(), 3u);
+  const CliRun objs = RunCli(args + "--out " + dir.File("objs"), dir);
+  EXPECT_EQ(objs.exit_code, 2);
+  EXPECT_THAT(objs.stderr_text, HasSubstr("is not a .pc2 file"));
+  EXPECT_EQ(RunCli(args + "--sample-rate 0 --out " + dir.File("zero.pc2"), dir).exit_code, 2);
+}
+
+// Targets that move every vertex leave a rig without an anchor floating: colliders are refused, and the
+// rig summary (-v) says how to hold it. Holding the open cylinder's outer rim (one end's loop) holds it, and the
+// collider then works.
+TEST(CliBlend, AHeldOuterRimHoldsARigWhoseTargetsMoveEveryVertex) {
+  TempDir dir;
+  const std::string args = "blend --rest " + kRest + " --target " + DataPath("cylinder/poses-1_cylinder-2.obj") +
+                           " --no-anchor --weights 1 --collider sphere:0,0.75,0.75,0.3 -v --out ";
+  const CliRun floating = RunCli(args + dir.File("floating.obj"), dir);
+  EXPECT_EQ(floating.exit_code, 2);
+  EXPECT_THAT(floating.stderr_text, HasSubstr("the rig is floating"));
+  EXPECT_THAT(floating.stderr_text, HasSubstr("--hold-outer-rim"));
+  const CliRun held = RunCli(args + dir.File("held.obj") + " --hold-outer-rim", dir);
+  ASSERT_EQ(held.exit_code, 0) << held.stderr_text;
+  EXPECT_THAT(held.stderr_text, HasSubstr("outer rim"));
+  EXPECT_THAT(held.stderr_text, Not(HasSubstr("the rig is floating")));
+  EXPECT_TRUE(held.lines.at(0)["converged"].get<bool>());
 }
 
 struct BadCall {

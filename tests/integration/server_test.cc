@@ -344,6 +344,10 @@ TEST(ServerRouting, ClientsComputeTheIdTheServerGivesAndAMismatchIsCounted) {
   chosen.set_bending_stiffness(0.5);
   chosen.set_no_interior(true);
   chosen.set_no_anchor(true);
+  v1::BuildOptions rim_fast = fast;
+  rim_fast.set_hold_outer_rim(true);
+  v1::BuildOptions rim;
+  rim.set_hold_outer_rim(true);
   std::vector<RigTarget> production = plain;
   RigTarget::Inbetween half;
   half.weight = 0.4;
@@ -361,6 +365,8 @@ TEST(ServerRouting, ClientsComputeTheIdTheServerGivesAndAMismatchIsCounted) {
   } cases[] = {{"plain, with target paths", plain, {}},
                {"plain, no target paths", plain, fast},
                {"every build option", plain, chosen},
+               {"held outer rim, no target paths", plain, rim_fast},
+               {"held outer rim, with target paths", plain, rim},
                {"in-between, mask and combination", production, fast}};
   std::set<std::string> ids;
   for (const auto& c : cases) {
@@ -369,7 +375,7 @@ TEST(ServerRouting, ClientsComputeTheIdTheServerGivesAndAMismatchIsCounted) {
     EXPECT_EQ(computed, uploaded.id()) << c.what;
     ids.insert(uploaded.id());
   }
-  EXPECT_EQ(ids.size(), 4u) << "each case is another character";
+  EXPECT_EQ(ids.size(), 6u) << "each case is another character";
   EXPECT_EQ(SeriesValue(HttpGet(server.metrics_port(), "/metrics"), "springblend_upload_routing_mismatches_total"), 0);
 
   // A client that routes by something else than the id: served, and counted.

@@ -135,6 +135,24 @@ class ClientTest(unittest.TestCase):
         # Warm starts differ, so equal to the solver's tolerance rather than to the bit.
         self.assertLessEqual(np.abs(frames[-1].positions - alone.positions[0]).max(), 1e-4 * self.diagonal)
 
+    def test_weights_by_name_are_the_positional_ones(self):
+        names = list(self.targets)
+        positional = self.client.solve(self.character.id, WEIGHTS[:2])
+        named = self.client.solve(self.character.id, [dict(zip(names, w)) for w in WEIGHTS[:2]])
+        np.testing.assert_array_equal(named.positions, positional.positions)
+        one = self.client.solve(self.character.id, {names[1]: WEIGHTS[1][1]})  # the other target at 0
+        np.testing.assert_array_equal(one.positions[0],
+                                      self.client.solve(self.character.id, [0.0, WEIGHTS[1][1]]).positions[0])
+        with self.client.interactive(self.character.id) as session:
+            session.send({names[0]: 0.5})
+            session.close()
+            self.assertTrue(list(session)[-1].summary.converged)
+        with self.assertRaises(springblend.SpringblendError) as caught:
+            self.client.solve(self.character.id, [{names[0]: 0.5}, {"jawOpen": 1.0}])
+        self.assertEqual(caught.exception.code, grpc.StatusCode.INVALID_ARGUMENT)
+        self.assertIn(f"weights[1]: 'jawOpen' is not a target of this character (targets: {', '.join(names)})",
+                      caught.exception.message)
+
     def test_wrong_weight_count_is_invalid_argument_with_the_servers_message(self):
         with self.assertRaises(springblend.SpringblendError) as caught:
             self.client.solve(self.character.id, [0.5, 0.5, 0.5])

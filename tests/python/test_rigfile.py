@@ -167,8 +167,9 @@ class RigUploadTest(unittest.TestCase):
                                      no_interior=True, no_anchor=True, bending_stiffness=0.5,
                                      no_target_paths=True).id)
             ids.append(client.upload(rig.rest, rig.faces, targets, no_target_paths=True).id)
+            ids.append(client.upload(rig.rest, rig.faces, targets, no_target_paths=True, hold_outer_rim=True).id)
         self.assertEqual(recorder.routes, ids)
-        self.assertEqual(len(set(ids)), 4)
+        self.assertEqual(len(set(ids)), 5)
 
     def test_server_refusals_name_the_rig_file(self):
         rig = rigfile.load_rig(RIG)

@@ -42,6 +42,19 @@ TEST(StoreFile, TheIdAndTheCacheFileKeepBuildOptionsThatChangeFrames) {
   EXPECT_NE(ContentId(with), ContentId(without));
   EXPECT_FALSE(Deserialize(Serialize(without)).options.target_paths);
   EXPECT_TRUE(Deserialize(Serialize(with)).options.target_paths);
+  // The held rim too, with and without paths; a character without either keeps the bytes it always had.
+  CharacterData rim = Tetrahedron(1.0), rim_without = without;
+  rim.options.hold_outer_rim = rim_without.options.hold_outer_rim = true;
+  EXPECT_EQ(std::set<std::string>({ContentId(with), ContentId(without), ContentId(rim), ContentId(rim_without)}).size(),
+            4u);
+  for (const CharacterData* d : {&rim, &rim_without}) {
+    const CharacterData back = Deserialize(Serialize(*d));
+    EXPECT_TRUE(back.options.hold_outer_rim);
+    EXPECT_EQ(back.options.target_paths, d->options.target_paths);
+    EXPECT_EQ(Serialize(back), Serialize(*d));
+  }
+  EXPECT_FALSE(Deserialize(Serialize(without)).options.hold_outer_rim);
+  EXPECT_EQ(Serialize(with).find("SBOPT001"), std::string::npos);
   testing::TempDir dir;
   std::string id;
   {

@@ -83,6 +83,7 @@ class SPRINGBLEND_OT_upload(jobs.ModalJob, _Guarded, bpy.types.Operator):
         rig = _character_rig(obj)
         client = connection.connect(context.scene)
         name = self._object_name = obj.name
+        hold_outer_rim = bool(obj.springblend_hold_outer_rim)
         self._counts = (len(rig.rest), len(rig.targets))
 
         def work(job):
@@ -94,7 +95,7 @@ class SPRINGBLEND_OT_upload(jobs.ModalJob, _Guarded, bpy.types.Operator):
 
             job.progress(0.0, f"uploading '{name}'")
             with client:
-                return client.upload_rig(rig, name=name, on_progress=progress)
+                return client.upload_rig(rig, name=name, on_progress=progress, hold_outer_rim=hold_outer_rim)
 
         return jobs.Job(work, "upload")
 
@@ -119,7 +120,8 @@ def _character_rig(obj):
     """The object's shape keys and vertex groups as a springblend.rigfile.Rig (README: Blender conventions)."""
     rigfile = connection.client_module().rigfile
     rest, faces, targets = scene_data.character_rig(obj)
-    return rigfile.Rig(rest, faces, [rigfile.Target(**t) for t in targets], path=f"'{obj.name}'")
+    return rigfile.Rig(rest, faces, [rigfile.Target(**t) for t in targets],
+                       fixed_vertices=scene_data.fixed_vertices(obj), path=f"'{obj.name}'")
 
 
 class SPRINGBLEND_OT_export_rig(_Guarded, bpy.types.Operator):

@@ -32,6 +32,7 @@ class SPRINGBLEND_PT_main(bpy.types.Panel):
             row = box.row(align=True)
             row.operator("springblend.upload", icon="EXPORT")
             row.operator("springblend.export_rig", text="", icon="FILE_TICK")
+            box.prop(obj, "springblend_hold_outer_rim")
 
         layout.prop(settings, "colliders")
         if obj is not None and obj.type in {"EMPTY", "MESH"}:

@@ -79,6 +79,19 @@ def vertex_group_mask(obj, group_name, vertex_count):
     return mask
 
 
+FIXED_GROUP = "springblend_fixed"
+
+
+def fixed_vertices(obj):
+    """The vertices of the vertex group 'springblend_fixed' (weight 0.5 or more), held as the character's fixed
+    vertices (as Vellum's pin groups and Ziva's attachments hold theirs); none without the group."""
+    group = obj.vertex_groups.get(FIXED_GROUP)
+    if group is None:
+        return []
+    return [v.index for v in obj.data.vertices
+            if any(e.group == group.index and e.weight >= 0.5 for e in v.groups)]
+
+
 def character_rig(obj):
     """(rest #V by 3, faces #F by 3 int32, targets) of a mesh object with shape keys, in the object's local space.
     targets: a list of dicts (name, positions, inbetweens [(weight, positions)], mask or None, combination) in

@@ -93,6 +93,11 @@ def register_properties():
     bpy.types.Scene.springblend = bpy.props.PointerProperty(type=SpringblendSceneSettings)
     bpy.types.Object.springblend_character = bpy.props.StringProperty(
         name="Character", description="The springblend character id this mesh was uploaded as")
+    bpy.types.Object.springblend_hold_outer_rim = bpy.props.BoolProperty(
+        name="Hold Outer Rim", default=False,
+        description="Hold the mesh's outer rim (a face mask's; its holes stay free) on the linear blend, as a mask "
+                    "is stitched to its head: the character is then held whatever its shape keys move, so "
+                    "colliders work. Vertices of a vertex group named 'springblend_fixed' are held too")
     bpy.types.Object.springblend_collider = bpy.props.EnumProperty(
         name="springblend shape", items=COLLIDER_SHAPES, default="AUTO",
         description="How this object is sent as a springblend collider")
@@ -100,5 +105,6 @@ def register_properties():
 
 def unregister_properties():
     del bpy.types.Object.springblend_collider
+    del bpy.types.Object.springblend_hold_outer_rim
     del bpy.types.Object.springblend_character
     del bpy.types.Scene.springblend

@@ -98,6 +98,7 @@ class Client:
         else:
             self._channel = grpc.insecure_channel(self.address, options=options)
         self._characters = pb_grpc.CharacterServiceStub(self._channel)
+        self._target_names = {}  # character id -> its weight names (target_names)
         self._solves = pb_grpc.SolveServiceStub(self._channel)
         self._health = self._channel.unary_unary(
             "/grpc.health.v1.Health/Check",
@@ -118,7 +119,8 @@ class Client:
     # Characters
 
     def upload(self, rest, faces, targets, target_names=None, name="", fixed_vertices=(), static_tolerance=0.0,
-               no_interior=False, no_anchor=False, bending_stiffness=0.0, no_target_paths=False, on_progress=None):
+               no_interior=False, no_anchor=False, bending_stiffness=0.0, no_target_paths=False, hold_outer_rim=False,
+               on_progress=None):
         """Uploads a character and returns its Character message (id, cache_hit, summary, target_names).
 
         Args:
@@ -127,8 +129,10 @@ class Client:
             targets: a dict name -> #V by 3 positions (in weight order), or a list of arrays with target_names.
             target_names: one unique name per target when targets is a list.
             name: a label for people (not part of the id).
-            fixed_vertices, static_tolerance, no_interior, no_anchor, bending_stiffness, no_target_paths: the rig
-                builder's BuildOptions (zero values mean the server's defaults).
+            fixed_vertices, static_tolerance, no_interior, no_anchor, bending_stiffness, no_target_paths,
+                hold_outer_rim: the rig builder's BuildOptions (zero values mean the server's defaults).
+                hold_outer_rim holds an open surface's outer rim (a face mask's) on the linear blend, so a rig
+                whose targets move every vertex is held and takes colliders and pins.
             on_progress: None, or a function called as on_progress(character_id, progress) about twice a second
                 while the server builds the character, progress being a BuildProgress message (stage, targets,
                 targets_done, path_samples, elapsed_ms, estimate_ms, from_cache_file). It runs on the calling
@@ -153,7 +157,7 @@ class Client:
         options = pb.BuildOptions(fixed_vertices=[int(v) for v in fixed_vertices],
                                   static_tolerance=float(static_tolerance), no_interior=bool(no_interior),
                                   no_anchor=bool(no_anchor), bending_stiffness=float(bending_stiffness),
-                                  no_target_paths=bool(no_target_paths))
+                                  no_target_paths=bool(no_target_paths), hold_outer_rim=bool(hold_outer_rim))
         header = pb.UploadHeader(name=name, vertex_count=len(rest), face_count=len(faces),
                                  target_names=[str(n) for n in target_names], options=options)
         return self._upload(header, faces, shapes_, {}, on_progress)
@@ -163,7 +167,7 @@ class Client:
         in-betweens, masks and combinations. Solves then take one weight per target that is not a combination
         (rig.weight_names). The server's refusals ("target 'jawOpen': inbetweens[1].weight ...") get the rig
         file's path in front. options: static_tolerance, no_interior, no_anchor, bending_stiffness,
-        no_target_paths, and on_progress, as for upload."""
+        no_target_paths, hold_outer_rim, and on_progress, as for upload."""
         if isinstance(rig, (str, bytes)) or hasattr(rig, "__fspath__"):
             rig = rigfile.load_rig(rig)
         rest = arrays.as_points(rig.rest, "rest")
@@ -311,7 +315,9 @@ class Client:
 
         Args:
             character_id: the id upload returned.
-            weights: #frames by #targets (or one frame's #targets), in the character's target order.
+            weights: #frames by #targets (or one frame's #targets), in the character's target order; or by name,
+                a dict {"jawOpen": 0.7, ...} per frame (or one dict), the targets not named at 0. Unknown names
+                are refused, naming the character's targets.
             colliders: Collider messages (see springblend.colliders), fixed for the whole request.
             collider_transforms: None, or per frame a sequence with one transform per collider: a Transform
                 message or a (translation, (w, x, y, z)) pair.
@@ -322,7 +328,7 @@ class Client:
             character_id=character_id, colliders=list(colliders),
             options=pb.SolveOptions(residual_tolerance=float(tolerance), max_iterations=int(max_iterations),
                                     linear=bool(linear), with_normals=bool(normals)),
-            frames=_frame_requests(weights, collider_transforms, pins))
+            frames=_frame_requests(self._by_position(character_id, weights), collider_transforms, pins))
         call = self._solves.Solve(request, timeout=self.timeout, metadata=self._metadata(character_id))
         try:
             for frame in call:
@@ -342,7 +348,40 @@ class Client:
             options=pb.SolveOptions(residual_tolerance=float(tolerance), max_iterations=int(max_iterations),
                                     linear=bool(linear), with_normals=bool(normals)),
             previews=bool(previews))
-        return InteractiveSession(self._solves, start, self.timeout, self._metadata(character_id), self._error)
+        return InteractiveSession(self._solves, start, self.timeout, self._metadata(character_id), self._error,
+                                  lambda weights: self._by_position(character_id, weights))
+
+    def target_names(self, character_id):
+        """The character's targets that take weights, in weight order (asked once per id: an id names one
+        character's content for good)."""
+        names = self._target_names.get(character_id)
+        if names is None:
+            names = list(self.get(character_id).target_names)
+            self._target_names[character_id] = names
+        return names
+
+    def _by_position(self, character_id, weights):
+        """Weights given by name (a dict per frame, or one dict) as rows in the character's target order."""
+        frames = [weights] if isinstance(weights, dict) else weights
+        if not isinstance(frames, (list, tuple)) or not frames or not any(isinstance(f, dict) for f in frames):
+            return weights
+        names = self.target_names(character_id)
+        rows = []
+        for i, frame in enumerate(frames):
+            where = "weights" if isinstance(weights, dict) else f"weights[{i}]"
+            if not isinstance(frame, dict):
+                raise invalid_argument(f"{where}: give every frame's weights by name (a dict) or none")
+            row = [0.0] * len(names)
+            for name, value in frame.items():
+                if name not in names:
+                    raise invalid_argument(f"{where}: '{name}' is not a target of this character (targets: "
+                                           f"{', '.join(names) or 'none'})")
+                try:
+                    row[names.index(name)] = float(value)
+                except (TypeError, ValueError):
+                    raise invalid_argument(f"{where}['{name}']: expected a number, got {value!r}") from None
+            rows.append(row)
+        return rows[0] if isinstance(weights, dict) else rows
 
     def _call(self, method, request, character_id=""):
         try:
@@ -386,12 +425,13 @@ class InteractiveSession:
 
     _END = object()
 
-    def __init__(self, stub, start, timeout, metadata, explain):
+    def __init__(self, stub, start, timeout, metadata, explain, by_position=lambda weights: weights):
         self._outbox = queue.Queue()
         self._outbox.put(pb.InteractiveRequest(start=start))
         self._sent = 0
         self._closed = False
         self._explain = explain
+        self._by_position = by_position
         self._responses = stub.Interactive(self._requests(), timeout=timeout, metadata=metadata)
 
     def _requests(self):
@@ -402,13 +442,13 @@ class InteractiveSession:
             yield item
 
     def send(self, weights, collider_transforms=None, pins=None):
-        """Queues one frame (weights in target order; one transform per collider or None; pins mapping or None)
-        and returns its index, the index its SolvedFrame will carry."""
+        """Queues one frame (weights in target order, or a dict by target name; one transform per collider or
+        None; pins mapping or None) and returns its index, the index its SolvedFrame will carry."""
         if self._closed:
             raise invalid_argument("send: the session is closed")
         transforms = None if collider_transforms is None else [collider_transforms]
         frame_pins = None if pins is None else [pins]
-        (request,) = _frame_requests([np.ravel(weights)], transforms, frame_pins)
+        (request,) = _frame_requests([np.ravel(self._by_position(weights))], transforms, frame_pins)
         self._outbox.put(pb.InteractiveRequest(frame=request))
         self._sent += 1
         return self._sent - 1

@@ -59,6 +59,8 @@ def character_id(header, faces, shapes, masks):
             digest.update(struct.pack("<I", len(spec.combination)))
             for driver in spec.combination:
                 digest.update(_string(driver))
-    if options.no_target_paths:
-        digest.update(_OPTIONS_MARKER + b"\0")
+    if options.no_target_paths or options.hold_outer_rim:
+        digest.update(_OPTIONS_MARKER + (b"\0" if options.no_target_paths else b"\1"))
+        if options.hold_outer_rim:
+            digest.update(b"\1")
     return digest.hexdigest()

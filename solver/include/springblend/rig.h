@@ -73,9 +73,10 @@ struct RigOptions {
   // Range of the thickness (0, 100].
   bool shell = true;
   double shell_thickness = 1.0;
-  // An open surface that gets no interior: also hold the vertices of its outer rim (the largest loop of
-  // boundary edges; holes such as a mouth or eyes stay free) on the linear blend, as a face mask is
-  // stitched to the head it belongs to.
+  // An open surface: also hold the vertices of its outer rim (the largest loop of boundary edges; holes such
+  // as a mouth or eyes stay free) on the linear blend, as a face mask is stitched to the head it belongs to.
+  // The rig is then held (colliders and pins need that) whatever its targets move. No effect on a closed
+  // surface.
   bool hold_outer_rim = false;
 
   // Stateless frames: solve each target's own path (the target alone at weight alpha, its in-betweens
