@@ -84,15 +84,6 @@ ClientOptions CallOptions(const std::string& command, const Connection& connecti
   return options;
 }
 
-const char* StatusName(int code) {
-  static constexpr const char* kNames[] = {
-      "OK",        "CANCELLED",      "UNKNOWN",           "INVALID_ARGUMENT",   "DEADLINE_EXCEEDED",
-      "NOT_FOUND", "ALREADY_EXISTS", "PERMISSION_DENIED", "RESOURCE_EXHAUSTED", "FAILED_PRECONDITION",
-      "ABORTED",   "OUT_OF_RANGE",   "UNIMPLEMENTED",     "INTERNAL",           "UNAVAILABLE",
-      "DATA_LOSS", "UNAUTHENTICATED"};
-  return code >= 0 && code < static_cast<int>(std::size(kNames)) ? kNames[code] : "UNKNOWN";
-}
-
 CallFailure Explain(const std::string& command, const CallError& error, const Connection& connection) {
   const std::string& call = error.call();
   const auto code = static_cast<grpc::StatusCode>(error.code());

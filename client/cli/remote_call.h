@@ -45,8 +45,6 @@ std::shared_ptr<grpc::Channel> OpenChannel(const Connection& connection);
 // ClientOptions for Client(channel, options): the token and the command's deadline.
 ClientOptions CallOptions(const std::string& command, const Connection& connection);
 
-// The name of a grpc::StatusCode: "UNAVAILABLE", not 14.
-const char* StatusName(int code);
 
 // A failed call, with what the CLI prints: "springblend upload: DEADLINE_EXCEEDED: ..." and a hint.
 struct CallFailure {

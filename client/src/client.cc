@@ -1,5 +1,6 @@
 #include "springblend/client.h"
 
+#include <iterator>
 #include <grpcpp/grpcpp.h>
 
 #include <cstring>
@@ -56,6 +57,15 @@ Client::Client(std::shared_ptr<grpc::Channel> channel, ClientOptions options)
     : options_(std::move(options)), channel_(std::move(channel)) {
   characters_ = v1::CharacterService::NewStub(channel_);
   solves_ = v1::SolveService::NewStub(channel_);
+}
+
+const char* StatusName(int code) {
+  static constexpr const char* kNames[] = {
+      "OK",        "CANCELLED",      "UNKNOWN",           "INVALID_ARGUMENT",   "DEADLINE_EXCEEDED",
+      "NOT_FOUND", "ALREADY_EXISTS", "PERMISSION_DENIED", "RESOURCE_EXHAUSTED", "FAILED_PRECONDITION",
+      "ABORTED",   "OUT_OF_RANGE",   "UNIMPLEMENTED",     "INTERNAL",           "UNAVAILABLE",
+      "DATA_LOSS", "UNAUTHENTICATED"};
+  return code >= 0 && code < static_cast<int>(std::size(kNames)) ? kNames[code] : "UNKNOWN";
 }
 
 v1::Collider MeshCollider(const Points& vertices, const Faces& triangles) {

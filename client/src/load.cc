@@ -16,21 +16,6 @@ bool IsLoopback(const std::string& address) {
   return host == "127.0.0.1" || host == "localhost" || host == "[::1]" || host.rfind("127.", 0) == 0;
 }
 
-const char* CodeName(int code) {
-  switch (static_cast<grpc::StatusCode>(code)) {
-    case grpc::StatusCode::CANCELLED: return "CANCELLED";
-    case grpc::StatusCode::INVALID_ARGUMENT: return "INVALID_ARGUMENT";
-    case grpc::StatusCode::DEADLINE_EXCEEDED: return "DEADLINE_EXCEEDED";
-    case grpc::StatusCode::NOT_FOUND: return "NOT_FOUND";
-    case grpc::StatusCode::RESOURCE_EXHAUSTED: return "RESOURCE_EXHAUSTED";
-    case grpc::StatusCode::UNAVAILABLE: return "UNAVAILABLE";
-    case grpc::StatusCode::UNAUTHENTICATED: return "UNAUTHENTICATED";
-    case grpc::StatusCode::PERMISSION_DENIED: return "PERMISSION_DENIED";
-    case grpc::StatusCode::INTERNAL: return "INTERNAL";
-    default: return "OTHER";
-  }
-}
-
 double Percentile(const std::vector<double>& sorted, double p) {
   if (sorted.empty()) return 0.0;
   const size_t rank = static_cast<size_t>(p * static_cast<double>(sorted.size() - 1) + 0.5);
@@ -94,7 +79,7 @@ LoadReport RunLoad(const ClientOptions& client, const LoadOptions& options) {
         report.frames += frames;
         if (code != 0) {
           ++report.errors;
-          ++report.errors_by_code[CodeName(code)];
+          ++report.errors_by_code[StatusName(code)];
           if (report.first_error.empty()) report.first_error = error;
         } else {
           latencies.push_back(ms);

@@ -2,8 +2,9 @@
 # The install test (CTest: install_consumer_test). Installs the build into a temporary prefix, builds
 # tests/install/consumer against it with find_package(springblend CONFIG REQUIRED), starts the installed
 # springblend-server on a free loopback port with a temporary cache, runs the consumer against it, and checks:
-# the versions the programs print, the springblend_build_info metric, and (ldd) that the client consumer links
-# none of the solver's libraries.
+# the versions the programs print, the springblend_build_info metric, (ldd) that the client consumer links
+# none of the solver's libraries, and that the README's plug-in (a MODULE linking the shared SDK, dlopened by a
+# host) needs only the SDK and the C++ runtime, while the SDK exports springblend::sdk alone.
 #   bash tests/install/run.sh BUILD_DIR TEST_DATA_DIR VERSION
 set -euo pipefail
 build="$1" data="$2" version="$3"
@@ -21,7 +22,7 @@ prefix="$work/prefix"
 echo "== cmake --install $build --prefix $prefix"
 cmake --install "$build" --prefix "$prefix" >"$work/install.log" || { cat "$work/install.log"; fail "install"; }
 for f in bin/springblend-server bin/springblend libexec/springblend/springblend-tetgen \
-         include/springblend/client.h include/springblend/geometry.h include/springblend/version.h \
+         include/springblend/client.h include/springblend/sdk.h include/springblend/geometry.h include/springblend/version.h \
          include/springblend/v1/springblend.grpc.pb.h lib/cmake/springblend/springblendConfig.cmake \
          lib/cmake/springblend/springblendConfigVersion.cmake share/springblend/python/springblend/_version.py; do
   [ -e "$prefix/$f" ] || fail "$f is not installed"
@@ -45,6 +46,32 @@ if grep -Ei 'cholmod|suitesparse|libtet|cgal|gmp|mpfr|openmesh|tbb|blas|lapack' 
   fail "the client consumer links a solver library (above)"
 fi
 grep -q 'libgrpc++' "$work/ldd.txt" || fail "the client consumer does not link gRPC?"
+
+echo "== the plug-in needs the SDK and the C++ runtime only; the SDK exports springblend::sdk only"
+plugin="$work/consumer/plugin.so"
+[ -f "$plugin" ] || fail "no plugin.so was built"
+needed="$(objdump -p "$plugin" | awk '$1 == "NEEDED" {print $2}' | sort | tr '\n' ' ')"
+echo "plugin.so needs: $needed"
+for lib in $needed; do
+  case "$lib" in
+    libspringblend_sdk.so.0|libstdc++.so.6|libm.so.6|libgcc_s.so.1|libc.so.6) ;;
+    *) fail "plugin.so needs $lib (only libspringblend_sdk.so.0 and the C++ runtime expected)" ;;
+  esac
+done
+grep -q 'libspringblend_sdk.so.0' <<<"$needed" || fail "plugin.so does not need libspringblend_sdk.so.0"
+sdk_lib="$prefix/lib/libspringblend_sdk.so.0"
+[ -e "$sdk_lib" ] || sdk_lib="$(ls "$prefix"/lib/*/libspringblend_sdk.so.0 2>/dev/null | head -n1)"
+[ -e "$sdk_lib" ] || fail "libspringblend_sdk.so.0 is not installed"
+objdump -p "$sdk_lib" | grep -q 'SONAME *libspringblend_sdk.so.0' || fail "the SDK's SONAME is not libspringblend_sdk.so.0"
+exported="$(nm -D --defined-only -C "$sdk_lib" | cut -d' ' -f3-)"
+strays="$(grep -v -e '^springblend::sdk::' -e '^typeinfo for springblend::sdk::' -e '^typeinfo name for springblend::sdk::' \
+               -e '^vtable for springblend::sdk::' -e '^SPRINGBLEND_SDK_0' <<<"$exported" || true)"
+[ -z "$strays" ] || { echo "$strays" | head -n 20; fail "the SDK exports symbols beyond springblend::sdk (above)"; }
+grep -q 'springblend::sdk::Client::Solve' <<<"$exported" || fail "the SDK does not export Client::Solve"
+ldd "$plugin" >"$work/plugin-ldd.txt"
+if grep -Ei 'cholmod|suitesparse|libtet|cgal|openmesh|tbb|blas' "$work/plugin-ldd.txt"; then
+  fail "the plug-in loads a solver library (above)"
+fi
 "$work/consumer/solver_consumer" "$data/cylinder/cylinder.obj" || fail "solver_consumer"
 
 echo "== the consumer against the installed server"
@@ -64,6 +91,8 @@ done
 metrics_port="$(sed -n 's|^springblend-server metrics on http://127.0.0.1:\([0-9]*\)/metrics$|\1|p' "$work/server.out")"
 grep -q "springblend-server $version serving on" "$work/server.log" || fail "the start-up log line has no version"
 "$work/consumer/consumer" "127.0.0.1:$port" "$data/cylinder" "$version" || fail "the consumer"
+echo "== the plug-in, dlopened by a host, against the installed server"
+"$work/consumer/plugin_host" "$plugin" "127.0.0.1:$port" "$data/cylinder" "$version" || fail "the plug-in"
 
 echo "== springblend_build_info"
 # (Python rather than bash's /dev/tcp: the endpoint answers after the first read, and a request written in two

@@ -14,6 +14,9 @@
 
 namespace springblend {
 
+// A grpc::StatusCode's name: "INVALID_ARGUMENT", "UNAVAILABLE", ... ("UNKNOWN" for a number out of range).
+const char* StatusName(int code);
+
 class ClientError : public std::runtime_error {
  public:
   ClientError(int code, const std::string& message)
