@@ -62,7 +62,9 @@ grep -q 'libspringblend_sdk.so.0' <<<"$needed" || fail "plugin.so does not need 
 sdk_lib="$prefix/lib/libspringblend_sdk.so.0"
 [ -e "$sdk_lib" ] || sdk_lib="$(ls "$prefix"/lib/*/libspringblend_sdk.so.0 2>/dev/null | head -n1)"
 [ -e "$sdk_lib" ] || fail "libspringblend_sdk.so.0 is not installed"
-objdump -p "$sdk_lib" | grep -q 'SONAME *libspringblend_sdk.so.0' || fail "the SDK's SONAME is not libspringblend_sdk.so.0"
+# (the whole output first: grep -q stops reading early, and pipefail would count objdump's SIGPIPE)
+sdk_headers="$(objdump -p "$sdk_lib")"
+grep -q 'SONAME *libspringblend_sdk.so.0' <<<"$sdk_headers" || fail "the SDK's SONAME is not libspringblend_sdk.so.0"
 exported="$(nm -D --defined-only -C "$sdk_lib" | cut -d' ' -f3-)"
 strays="$(grep -v -e '^springblend::sdk::' -e '^typeinfo for springblend::sdk::' -e '^typeinfo name for springblend::sdk::' \
                -e '^vtable for springblend::sdk::' -e '^SPRINGBLEND_SDK_0' <<<"$exported" || true)"
