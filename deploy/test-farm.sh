@@ -93,9 +93,6 @@ s=$(date +%s)
 build_args=(--format docker --pull=never --build-arg "BASE=$base_image" --ignorefile deploy/containerignore
             -f deploy/Dockerfile -t "$image")
 [ "${NO_CACHE:-0}" = 1 ] && build_args+=(--no-cache)
-# The host's ccache (CI's release stage filled it from this checkout) serves the image's compile step.
-ccache_dir="${CCACHE_DIR:-$HOME/.cache/ccache}"
-if [ "${NO_CACHE:-0}" != 1 ] && mkdir -p "$ccache_dir" 2>/dev/null; then build_args+=(-v "$ccache_dir:/ccache"); fi
 echo "test-farm: podman build ${build_args[*]} ."
 podman build "${build_args[@]}" . || die "podman build failed"
 timing_build=$(( $(date +%s) - s ))
