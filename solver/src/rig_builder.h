@@ -48,7 +48,8 @@ class RigBuilder {
   Rig& r_;
   std::unordered_set<std::uint64_t> springs_;  // vertex pairs that already have a spring
   internal::Interior interior_;
-  double shell_offset_ = 0.0;
+  double shell_offset_ = 0.0;     // the mean edge length times the thickness
+  Eigen::VectorXd shell_offsets_;  // per vertex: its inner copy's depth
   Points shell_normals_rest_;
 };
 

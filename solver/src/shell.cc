@@ -41,16 +41,29 @@ void RigBuilder::BuildShell() {
   const int n = static_cast<int>(rest.rows());
   double edge_sum = 0.0;
   int edges = 0;
+  Eigen::VectorXd incident_sum = Eigen::VectorXd::Zero(n);
+  Eigen::VectorXi incident = Eigen::VectorXi::Zero(n);
   for (size_t q = 0; q < rig.spring_a_.size(); ++q) {
     if (rig.spring_kind_[q] != SpringKind::kStructure) continue;
-    edge_sum += (rest.row(rig.spring_a_[q]) - rest.row(rig.spring_b_[q])).norm();
+    const int a = rig.spring_a_[q], b = rig.spring_b_[q];
+    const double length = (rest.row(a) - rest.row(b)).norm();
+    edge_sum += length;
     ++edges;
+    incident_sum[a] += length, incident_sum[b] += length;
+    ++incident[a], ++incident[b];
   }
   shell_offset_ = rig.options_.shell_thickness * (edges > 0 ? edge_sum / edges : 0.0);
+  // Each vertex's inner copy sits as deep as its own edges are long (at most the mean): where the mesh is fine
+  // (a mouth corner's crease) a uniform depth would fold the layer over itself.
+  shell_offsets_.resize(n);
+  for (int v = 0; v < n; ++v) {
+    const double local = incident[v] > 0 ? rig.options_.shell_thickness * incident_sum[v] / incident[v] : shell_offset_;
+    shell_offsets_[v] = std::min(shell_offset_, local);
+  }
   shell_normals_rest_ = VertexNormals(rest, rig.rest_.faces, nullptr);
   interior.vertices.resize(2 * n, 3);
   interior.vertices.topRows(n) = rest;
-  interior.vertices.bottomRows(n) = rest - shell_offset_ * shell_normals_rest_;
+  interior.vertices.bottomRows(n) = rest - shell_offsets_.asDiagonal() * shell_normals_rest_;
   // The layer resists bending by itself; the bending springs would only widen the Hessian's bandwidth
   // (distance-2 neighbours), which costs 1.7 times the factor's fill on the face. Drop them.
   size_t kept = 0;
@@ -96,7 +109,7 @@ void RigBuilder::PlaceShell() {
     const Points normals = VertexNormals(x, rig.rest_.faces, &shell_normals_rest_);
     Points& shape = rig.shapes_[t + 1];
     shape.topRows(n) = x;
-    shape.bottomRows(n) = x - shell_offset_ * normals;
+    shape.bottomRows(n) = x - shell_offsets_.asDiagonal() * normals;
   }
 }
 

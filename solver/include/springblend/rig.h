@@ -66,7 +66,9 @@ struct RigOptions {
   std::optional<std::array<double, 3>> anchor_center;
   // Thickness for surfaces that get no interior (an open sheet such as a face mask, whose caps TetGen
   // refuses, or a self-intersecting closed surface such as the cat): an inner layer of vertices offset against each shape's own vertex normals by
-  // shell_thickness mean edge lengths, joined to the surface by springs along, across and beside every
+  // shell_thickness times its own mean edge length (at most the mesh's mean: where the mesh is fine, as at a
+  // mouth corner's crease, a uniform depth folds the layer over itself and makes the equilibria snap from one
+  // weight to the next), joined to the surface by springs along, across and beside every
   // edge (a prism shell). A sheet held only by edge and bending springs is floppy out of its plane (slow,
   // and with several equilibria); the shell makes it resist bending. Each target's layer is placed by its
   // own normals, so targets are still reproduced exactly; the layer replaces the bending springs.
