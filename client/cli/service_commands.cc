@@ -118,6 +118,38 @@ Client ClientFor(const std::string& command, const RemoteArgs& args) {
   return Client(OpenChannel(args.connection), CallOptions(command, args.connection));
 }
 
+// READY, BUILDING, STORED (the proto's names without their prefix).
+std::string StateName(v1::CharacterState state) {
+  const std::string name = v1::CharacterState_Name(state);
+  constexpr std::string_view kPrefix = "CHARACTER_STATE_";
+  return name.rfind(kPrefix, 0) == 0 ? name.substr(kPrefix.size()) : name;
+}
+
+// --character as people give it: a full id, a prefix of 12 or more of its hex digits (as the logs and `list`
+// show them), or a character's name; a prefix or name must name exactly one character the server lists.
+std::string ResolveCharacter(Client& client, const std::string& command, const std::string& given) {
+  const bool hex = !given.empty() && given.find_first_not_of("0123456789abcdef") == std::string::npos;
+  if (hex && given.size() == 64) return given;
+  const std::vector<v1::Character> listed = Call(command + " (list, to find --character)", [&] { return client.List(); });
+  std::vector<std::string> by_prefix, by_name;
+  for (const v1::Character& c : listed) {
+    if (hex && given.size() >= 12 && c.id().compare(0, given.size(), given) == 0) by_prefix.push_back(c.id());
+    if (c.name() == given) by_name.push_back(c.id());
+  }
+  const std::vector<std::string>& found = !by_prefix.empty() ? by_prefix : by_name;
+  if (found.size() == 1) return found[0];
+  if (found.empty()) {
+    throw Error(ErrorCode::kInvalidInput,
+                fmt::format("--character '{}': no character on the server has this {} (give a full id, 12 or "
+                            "more of its hex digits, or a name; springblend list shows them)",
+                            given, hex && given.size() >= 12 ? "id prefix or name" : "name"));
+  }
+  std::string ids;
+  for (const std::string& id : found) ids += (ids.empty() ? "" : ", ") + id.substr(0, 16);
+  throw Error(ErrorCode::kInvalidInput,
+              fmt::format("--character '{}' names {} characters ({}): give more of the id", given, found.size(), ids));
+}
+
 // The build's progress on stderr while an upload waits: a line when the stage or the targets done change, and
 // at least every 10 s (the JSON answer alone goes to stdout).
 Client::UploadProgress ProgressPrinter() {
@@ -189,13 +221,14 @@ int RunUpload(const RemoteArgs& args) {
 
 int RunSolve(const RemoteArgs& args) {
   Client client = ClientFor("solve", args);
+  const std::string id = ResolveCharacter(client, "solve", args.character);
   const v1::Character character =
-      Call("get (the character's faces, before the solve)", [&] { return client.Get(args.character, true); });
+      Call("get (the character's faces, before the solve)", [&] { return client.Get(id, true); });
   Faces faces(character.faces().size() / 12, 3);
   std::memcpy(faces.data(), character.faces().data(), character.faces().size());
 
   v1::SolveRequest request;
-  request.set_character_id(args.character);
+  request.set_character_id(id);
   std::vector<Frame> frames;
   std::vector<std::string> collider_specs;
   if (!args.frames_file.empty()) {
@@ -282,8 +315,39 @@ int RunList(const RemoteArgs& args) {
 
 int RunDelete(const RemoteArgs& args) {
   Client client = ClientFor("delete", args);
-  Call("delete", [&] { client.Delete(args.character); });
-  std::cout << nlohmann::json({{"deleted", args.character}}).dump() << std::endl;
+  const std::string id = ResolveCharacter(client, "delete", args.character);
+  Call("delete", [&] { client.Delete(id); });
+  std::cout << nlohmann::json({{"deleted", id}}).dump() << std::endl;
+  return kExitOk;
+}
+
+// One character as a JSON line: what `list` shows and the rest of its summary, its state (READY, BUILDING with
+// the build's progress, STORED: only in the server's cache directory) and its build's times. Answers at once,
+// also while the character is being built.
+int RunDescribe(const RemoteArgs& args) {
+  Client client = ClientFor("describe", args);
+  const std::string id = ResolveCharacter(client, "describe", args.character);
+  const v1::Character c = Call("describe", [&] { return client.Get(id, false, /*no_wait=*/true); });
+  const v1::RigSummary& s = c.summary();
+  nlohmann::json out = CharacterJson(c);
+  out.erase("cache_hit");
+  out["state"] = StateName(c.state());
+  out["faces"] = s.faces();
+  out["interior_reason"] = s.interior_reason();
+  out["interior_vertices"] = s.interior_vertices();
+  out["anchor_vertices"] = s.anchor_vertices();
+  out["uncertified_path_intervals"] = s.uncertified_path_intervals();
+  out["path_max_error"] = s.path_max_error();
+  out["path_bytes"] = s.path_bytes();
+  out["rig_bytes"] = s.rig_bytes();
+  if (c.state() == v1::CHARACTER_STATE_BUILDING) {
+    const v1::BuildProgress& p = c.build();
+    out["build"] = {{"stage", p.stage()},           {"targets", p.targets()},
+                    {"targets_done", p.targets_done()}, {"path_samples", p.path_samples()},
+                    {"elapsed_ms", p.elapsed_ms()},     {"estimate_ms", p.estimate_ms()},
+                    {"from_cache_file", p.from_cache_file()}};
+  }
+  std::cout << out.dump() << std::endl;
   return kExitOk;
 }
 
@@ -389,7 +453,9 @@ std::vector<std::pair<std::string, Runner>> AddServiceCommands(CLI::App& app) {
   CLI::App* solve = app.add_subcommand(
       "solve", "solve frames on the server; writes OUT/frame_0000.obj ... (or OUT.pc2) and JSON lines");
   server_option(solve);
-  solve->add_option("--character", args->character, "character id from upload")->required();
+  solve->add_option("--character", args->character,
+                    "the character: its id from upload, 12 or more of its first hex digits, or its name")
+      ->required();
   solve->add_option("--weights", args->weights,
                     "one weight per target, or by name: jawOpen=0.7,mouthSmile_L=0.3 (the others 0); the sweep's end "
                     "with --sweep")
@@ -415,8 +481,16 @@ std::vector<std::pair<std::string, Runner>> AddServiceCommands(CLI::App& app) {
 
   CLI::App* remove = app.add_subcommand("delete", "delete a character from the server and its cache directory");
   server_option(remove);
-  remove->add_option("--character", args->character, "character id")->required();
+  remove->add_option("--character", args->character, "the character: its id, 12 or more of its hex digits, or its name")
+      ->required();
   runners.emplace_back("delete", Guarded("delete", args, RunDelete));
+
+  CLI::App* describe = app.add_subcommand(
+      "describe", "show one character as JSON: targets, vertices, interior, boundary mode, state, build times");
+  server_option(describe);
+  describe->add_option("--character", args->character, "the character: its id, 12 or more of its hex digits, or its name")
+      ->required();
+  runners.emplace_back("describe", Guarded("describe", args, RunDescribe));
 
   CLI::App* health = app.add_subcommand("health", "ask the server's health service; exit 0 when SERVING");
   server_option(health);

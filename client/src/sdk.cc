@@ -84,6 +84,7 @@ Character FromCharacter(const v1::Character& c) {
   out.id = c.id();
   out.name = c.name();
   out.state = v1::CharacterState_Name(c.state());
+  if (out.state.rfind("CHARACTER_STATE_", 0) == 0) out.state.erase(0, std::string_view("CHARACTER_STATE_").size());
   out.cache_hit = c.cache_hit();
   out.target_names.assign(c.target_names().begin(), c.target_names().end());
   out.combination_names.assign(c.combination_names().begin(), c.combination_names().end());

@@ -265,5 +265,51 @@ TEST_F(CliRemoteTest, AHeldRimUploadTakesCollidersAndNamedWeightsIntoAShotsPoint
   EXPECT_THAT(unknown.stderr_text, HasSubstr("'jawOpen' is not a target of this character (targets: poses-1_cylinder-2)"));
 }
 
+// A character is named as the logs and `list` show it: 12 or more hex digits of its id, or its name; describe
+// shows one character whatever names it; an unknown or ambiguous name is refused, saying which.
+TEST_F(CliRemoteTest, CharactersAreNamedByIdPrefixOrNameAndDescribed) {
+  ServerProcess server(cache_.path().string());
+  ASSERT_FALSE(server.address().empty());
+  const std::string remote = " --server " + server.address() + " --timeout 120";
+  const CliRun upload = RunCli("upload" + kCylinder + " --name arm --no-target-paths" + remote, dir_);
+  ASSERT_EQ(upload.exit_code, 0) << upload.stderr_text;
+  const std::string id = upload.lines.at(0)["id"];
+  for (const std::string& given : {id, id.substr(0, 12), id.substr(0, 40), std::string("arm")}) {
+    const CliRun described = RunCli("describe --character " + given + remote, dir_);
+    ASSERT_EQ(described.exit_code, 0) << given << ": " << described.stderr_text;
+    const nlohmann::json& d = described.lines.at(0);
+    EXPECT_EQ(d["id"], id) << given;
+    EXPECT_EQ(d["name"], "arm");
+    EXPECT_EQ(d["state"], "READY");
+    EXPECT_EQ(d["targets"], nlohmann::json::array({"poses-2_cylinder-1", "poses-2_cylinder-3"}));
+    EXPECT_EQ(d["surface_vertices"], 420);
+    EXPECT_EQ(d["faces"], 800);
+    EXPECT_FALSE(d["interior"].get<std::string>().empty());
+    EXPECT_GT(d["precompute_ms"].get<double>(), 0.0);
+  }
+  const CliRun solved = RunCli("solve --character " + id.substr(0, 12) + " --weights 0.5,0.5 --out " +
+                                   dir_.File("frames") + remote,
+                               dir_);
+  EXPECT_EQ(solved.exit_code, 0) << solved.stderr_text;
+  EXPECT_EQ(solved.lines.size(), 1u);
+
+  const CliRun short_prefix = RunCli("describe --character " + id.substr(0, 8) + remote, dir_);
+  EXPECT_EQ(short_prefix.exit_code, 2);
+  EXPECT_THAT(short_prefix.stderr_text, HasSubstr("--character '" + id.substr(0, 8) + "': no character on the server has this name"));
+  EXPECT_THAT(short_prefix.stderr_text, HasSubstr("12 or more of its hex digits"));
+  // Another character with the same name: the name no longer says which.
+  const CliRun other = RunCli("upload --rest " + DataPath("cylinder/cylinder.obj") + " --target " +
+                                  DataPath("cylinder/poses-2_cylinder-2.obj") + " --name arm --no-target-paths" + remote,
+                              dir_);
+  ASSERT_EQ(other.exit_code, 0) << other.stderr_text;
+  const CliRun ambiguous = RunCli("describe --character arm" + remote, dir_);
+  EXPECT_EQ(ambiguous.exit_code, 2);
+  EXPECT_THAT(ambiguous.stderr_text, HasSubstr("--character 'arm' names 2 characters"));
+  const CliRun removed = RunCli("delete --character " + id.substr(0, 12) + remote, dir_);
+  ASSERT_EQ(removed.exit_code, 0) << removed.stderr_text;
+  EXPECT_EQ(removed.lines.at(0)["deleted"], id);
+  EXPECT_EQ(RunCli("describe --character arm" + remote, dir_).lines.at(0)["id"], other.lines.at(0)["id"]);
+}
+
 }  // namespace
 }  // namespace springblend
