@@ -12,6 +12,7 @@
 #include <exception>
 #include <optional>
 
+#include "access_log.h"
 #include "service.h"
 #include "springblend/error.h"
 #include "status.h"
@@ -35,14 +36,19 @@ grpc::ByteBuffer Serialize(const Message& message) {
   return out;
 }
 
-// The token check every handler makes before any work; a refusal is counted like any other answer.
+// A call answered before any work (a refusal): counted and logged like any other answer.
+inline grpc::Status AnsweredAtOnce(grpc::CallbackServerContext* call, ServiceContext& context, const char* method,
+                                   const grpc::Status& status) {
+  EndCall(context.metrics, BeginCall(call, method), status);
+  return status;
+}
+
+// The token check every handler makes before any work; a refusal is counted and logged like any other answer.
 inline std::optional<grpc::Status> Refused(grpc::CallbackServerContext* call, ServiceContext& context, const char* method,
                                     Access needed) {
   const AuthVerdict verdict = context.auth.Check(*call, needed);
   if (verdict.allowed()) return std::nullopt;
-  const grpc::Status status = ToStatus(verdict);
-  context.metrics.CountRequest(method, CodeName(status.error_code()));
-  return status;
+  return AnsweredAtOnce(call, context, method, ToStatus(verdict));
 }
 
 // A streaming call refused before any work: it answers with the status and goes.
@@ -63,24 +69,24 @@ grpc::ServerUnaryReactor* OnPoolDeferred(grpc::CallbackServerContext* call, Serv
   SolverPool& pool = context.metadata_pool;
   grpc::ServerUnaryReactor* reactor = call->DefaultReactor();
   Metrics& metrics = context.metrics;
-  const MetricsClock::time_point started = MetricsClock::now();
   if (auto refused = Refused(call, context, method, needed)) {
     reactor->Finish(*refused);
     return reactor;
   }
+  CallInfo info = BeginCall(call, method);
   auto request = std::make_shared<Request>();
   if (!Parse(*in, request.get())) {
     const grpc::Status status = Unparseable(Request::descriptor()->name());
-    metrics.CountRequest(method, CodeName(status.error_code()));
+    EndCall(metrics, info, status);
     reactor->Finish(status);
     return reactor;
   }
-  const bool queued = pool.TrySubmit([reactor, &metrics, method, started, request, out,
-                                      work = std::move(work)]() mutable {
+  if constexpr (requires { request->id(); }) info.character = request->id();
+  const bool queued = pool.TrySubmit([reactor, &metrics, info, request, out, work = std::move(work)]() mutable {
     auto response = std::make_shared<Response>();
-    const auto done = [reactor, &metrics, method, started, response, out](const grpc::Status& status) {
+    const auto done = [reactor, &metrics, info, response, out](const grpc::Status& status) {
       if (status.ok()) *out = Serialize(*response);
-      metrics.CountRequest(method, CodeName(status.error_code()), started);
+      EndCall(metrics, info, status);
       reactor->Finish(status);
     };
     try {
@@ -90,7 +96,7 @@ grpc::ServerUnaryReactor* OnPoolDeferred(grpc::CallbackServerContext* call, Serv
     }
   });
   if (!queued) {
-    metrics.CountRequest(method, CodeName(kQueueFull.error_code()));
+    EndCall(metrics, info, kQueueFull);
     reactor->Finish(kQueueFull);
   }
   return reactor;

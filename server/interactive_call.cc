@@ -29,6 +29,8 @@ class InteractiveReactor final : public grpc::ServerBidiReactor<grpc::ByteBuffer
         watch_(context.watchdog.Watch(call, true)),
         memory_(&context.memory),
         solver_charge_(context.metrics) {
+    info_ = BeginCall(call, "Interactive");
+    info_.frames = 0;
     StartRead(&bytes_);
   }
 
@@ -140,7 +142,9 @@ class InteractiveReactor final : public grpc::ServerBidiReactor<grpc::ByteBuffer
   void FinishLocked(std::unique_lock<std::mutex>&, const grpc::Status& status) {
     if (finished_) return;
     finished_ = true;
-    context_.metrics.CountRequest("Interactive", CodeName(status.error_code()), arrived_);
+    info_.frames = received_;
+    info_.character = start_.character_id();
+    EndCall(context_.metrics, info_, status);
     finish_due_ = status;
   }
   void Act(std::unique_lock<std::mutex>& lock) {
@@ -420,7 +424,7 @@ class InteractiveReactor final : public grpc::ServerBidiReactor<grpc::ByteBuffer
 
   grpc::CallbackServerContext* call_;
   ServiceContext& context_;
-  const MetricsClock::time_point arrived_ = MetricsClock::now();
+  CallInfo info_;
   OpenCall open_{context_.metrics.interactive_sessions};
   std::shared_ptr<Watchdog::Handle> watch_;
   Reservation memory_;

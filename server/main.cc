@@ -2,6 +2,7 @@
 // and runs it until SIGTERM or SIGINT, then drains in-flight calls.
 #include <signal.h>
 #include <spdlog/sinks/stdout_color_sinks.h>
+#include <spdlog/sinks/stdout_sinks.h>
 #include <spdlog/spdlog.h>
 
 #include <CLI/CLI.hpp>
@@ -9,6 +10,7 @@
 #include <iostream>
 #include <thread>
 
+#include "access_log.h"
 #include "server.h"
 #include "springblend/runtime.h"
 #include "springblend/version.h"
@@ -72,6 +74,11 @@ int main(int argc, char** argv) {
                                       "Prefer --tokens-file: flags show in ps");
   app.add_option("--tokens-file", o.tokens_file, "file of 'ROLE TOKEN' lines (ROLE: full or solve); with any "
                                                  "token, calls without an accepted one are refused");
+  std::string log_format = "text";
+  app.add_option("--log-format", log_format,
+                 "text (spdlog's lines) or json (one object per line: time, level, message; a call's access line "
+                 "carries method, character, frames, status, ms, peer and request_id as members)")
+      ->check(CLI::IsMember({"text", "json"}));
   CLI11_PARSE(app, argc, argv);
   if (o.cache_dir.empty()) o.cache_dir = DefaultCacheDirectory();
   o.memory_budget_bytes = memory_mb << 20;
@@ -82,7 +89,9 @@ int main(int argc, char** argv) {
   o.drain = std::chrono::seconds(drain_seconds);
 
   // Logs go to stderr; stdout carries only the "listening on" lines, for scripts and tests to read.
-  spdlog::set_default_logger(spdlog::stderr_color_mt("springblend"));
+  spdlog::set_default_logger(log_format == "json" ? spdlog::stderr_logger_mt("springblend")
+                                                  : spdlog::stderr_color_mt("springblend"));
+  springblend::server::SetJsonLogs(log_format == "json");
   // A closed stdout or a vanished peer must not kill a shared server.
   signal(SIGPIPE, SIG_IGN);
   // Signals go to a dedicated thread (blocked everywhere else, so set before any thread starts).

@@ -109,16 +109,10 @@ grpc::ServerWriteReactor<grpc::ByteBuffer>* SolveServiceImpl::Solve(grpc::Callba
   try {
     received.Grow(static_cast<std::int64_t>(in->Length()));
   } catch (const std::exception& e) {
-    const grpc::Status status = ToStatus(e);
-    context_.metrics.CountRequest("Solve", CodeName(status.error_code()));
-    return new Refuse(status);
+    return new Refuse(AnsweredAtOnce(call, context_, "Solve", ToStatus(e)));
   }
   v1::SolveRequest request;
-  if (!Parse(*in, &request)) {
-    const grpc::Status status = Unparseable("SolveRequest");
-    context_.metrics.CountRequest("Solve", CodeName(status.error_code()));
-    return new Refuse(status);
-  }
+  if (!Parse(*in, &request)) return new Refuse(AnsweredAtOnce(call, context_, "Solve", Unparseable("SolveRequest")));
   // gRPC keeps the request's bytes for the whole call; parsed, they are not needed (the buffer is the call's,
   // not const, and is only destroyed after this).
   const_cast<grpc::ByteBuffer*>(in)->Clear();

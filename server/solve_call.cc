@@ -33,6 +33,9 @@ class SolveReactor final : public grpc::ServerWriteReactor<grpc::ByteBuffer> {
         watch_(context.watchdog.Watch(call, false)),
         memory_(&context.memory),
         solvers_charge_(context.metrics) {
+    info_ = BeginCall(call, "Solve");
+    info_.character = request_.character_id();
+    info_.frames = request_.frames_size();
     std::unique_lock lock(mutex_);
     try {
       request_bytes_ = RequestBytes(request_);
@@ -141,7 +144,7 @@ class SolveReactor final : public grpc::ServerWriteReactor<grpc::ByteBuffer> {
     if (action == Action::kWrite) {
       StartWrite(&frame_);
     } else if (action == Action::kFinish) {
-      context_.metrics.CountRequest("Solve", CodeName(final_status_.error_code()), arrived_);
+      EndCall(context_.metrics, info_, final_status_);
       Finish(final_status_);
     }
   }
@@ -256,7 +259,7 @@ class SolveReactor final : public grpc::ServerWriteReactor<grpc::ByteBuffer> {
 
   grpc::CallbackServerContext* call_;
   ServiceContext& context_;
-  const MetricsClock::time_point arrived_ = MetricsClock::now();
+  CallInfo info_;
   OpenCall open_{context_.metrics.solve_streams};
   v1::SolveRequest request_;
   std::shared_ptr<Watchdog::Handle> watch_;

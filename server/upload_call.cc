@@ -19,6 +19,7 @@ class UploadReactor final : public grpc::ServerReadReactor<grpc::ByteBuffer> {
         response_(response),
         watch_(context.watchdog.Watch(call, false)),
         assembler_(context.limits, &context.memory) {
+    info_ = BeginCall(call, "UploadCharacter");
     watch_->Waiting();
     StartRead(&bytes_);
   }
@@ -55,7 +56,7 @@ class UploadReactor final : public grpc::ServerReadReactor<grpc::ByteBuffer> {
 
  private:
   void Done(const grpc::Status& status) {
-    context_.metrics.CountRequest("UploadCharacter", CodeName(status.error_code()), arrived_);
+    EndCall(context_.metrics, info_, status);
     Finish(status);
   }
   // On the metadata pool: the pieces checked and assembled, then the build started on the build pool (or the
@@ -83,9 +84,11 @@ class UploadReactor final : public grpc::ServerReadReactor<grpc::ByteBuffer> {
         std::lock_guard lock(mutex_);
         waiter_ = std::move(found.waiter);
         sending_metadata_ = true;
+        info_.character = found.building->id();
       }
-      spdlog::info("upload {} '{}': {}", found.building->id().substr(0, 12), Printable(found.building->name()),
-                   found.known ? "rebuilding from the cache directory" : "building");
+      spdlog::info("upload {} '{}': {} (request_id={})", found.building->id().substr(0, 12),
+                   Printable(found.building->name()), found.known ? "rebuilding from the cache directory" : "building",
+                   info_.request_id);
       call_->AddInitialMetadata(kCharacterIdHeader, found.building->id());
       StartSendInitialMetadata();
       const bool known = found.known;
@@ -121,17 +124,18 @@ class UploadReactor final : public grpc::ServerReadReactor<grpc::ByteBuffer> {
     grpc::Status status;
     if (error) {
       status = BuildStatus(error, call_, context_);
-      spdlog::warn("upload refused: {}", Printable(status.error_message(), 400));
+      spdlog::warn("upload refused: {} (request_id={})", Printable(status.error_message(), 400), info_.request_id);
     } else if (!entry) {
       status = ToStatus(Error(ErrorCode::kInternal, "the character's cache file went missing while it was read; upload "
                                                     "it again"));
     } else {
       *response_ = Serialize(ToProto(*entry, known));
-      spdlog::info("upload {} '{}': {} ({} vertices, {} springs, {:.0f} ms)", entry->id.substr(0, 12),
+      spdlog::info("upload {} '{}': {} ({} vertices, {} springs, {:.0f} ms; request_id={})", entry->id.substr(0, 12),
                    Printable(entry->name), known ? "cache hit" : "built", entry->rig->num_vertices(),
-                   entry->rig->num_springs(), entry->rig->summary().precompute_ms);
+                   entry->rig->num_springs(), entry->rig->summary().precompute_ms, info_.request_id);
     }
     std::unique_lock lock(mutex_);
+    if (entry) info_.character = entry->id;
     waiter_.reset();
     due_ = status;
     FinishIfDue(lock);
@@ -147,7 +151,7 @@ class UploadReactor final : public grpc::ServerReadReactor<grpc::ByteBuffer> {
 
   grpc::CallbackServerContext* call_;
   ServiceContext& context_;
-  const MetricsClock::time_point arrived_ = MetricsClock::now();
+  CallInfo info_;
   grpc::ByteBuffer* response_;
   std::shared_ptr<Watchdog::Handle> watch_;
   UploadAssembler assembler_;

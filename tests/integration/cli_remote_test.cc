@@ -4,11 +4,15 @@
 #include <arpa/inet.h>
 #include <gmock/gmock.h>
 #include <gtest/gtest.h>
+#include <grpcpp/grpcpp.h>
 #include <netinet/in.h>
 #include <sys/socket.h>
 #include <unistd.h>
 
 #include <chrono>
+#include <set>
+#include <map>
+#include <fstream>
 #include <thread>
 
 #include "integration/cli_process.h"
@@ -309,6 +313,70 @@ TEST_F(CliRemoteTest, CharactersAreNamedByIdPrefixOrNameAndDescribed) {
   ASSERT_EQ(removed.exit_code, 0) << removed.stderr_text;
   EXPECT_EQ(removed.lines.at(0)["deleted"], id);
   EXPECT_EQ(RunCli("describe --character arm" + remote, dir_).lines.at(0)["id"], other.lines.at(0)["id"]);
+}
+
+// --log-format json: every line the server writes is one JSON object, and every call leaves one access line
+// (method, character, frames, status, ms, peer, request id). A call's request id is the client's x-request-id,
+// else a new one, and comes back in the response's initial metadata.
+TEST_F(CliRemoteTest, JsonLogsHaveOneAccessLinePerCallWithItsRequestId) {
+  const std::string log = dir_.File("server.log");
+  std::string echoed, made;
+  {
+    ServerProcess server(cache_.path().string(), {"--log-format", "json"}, log);
+    ASSERT_FALSE(server.address().empty());
+    const std::string remote = " --server " + server.address() + " --timeout 120";
+    const CliRun upload = RunCli("upload" + kCylinder + " --name arm --no-target-paths" + remote, dir_);
+    ASSERT_EQ(upload.exit_code, 0) << upload.stderr_text;
+    const std::string id = upload.lines.at(0)["id"];
+    ASSERT_EQ(RunCli("solve --character " + id + " --sweep 2 --weights 0.5,0.5 --out " + dir_.File("f") + remote, dir_)
+                  .exit_code,
+              0);
+    EXPECT_EQ(RunCli("describe --character " + std::string(64, 'c') + remote, dir_).exit_code, 2);  // NOT_FOUND
+    auto channel = grpc::CreateChannel(server.address(), grpc::InsecureChannelCredentials());
+    auto stub = v1::CharacterService::NewStub(channel);
+    for (const bool given : {true, false}) {
+      grpc::ClientContext context;
+      if (given) context.AddMetadata("x-request-id", "trace-abc-123");
+      v1::ListCharactersResponse response;
+      ASSERT_TRUE(stub->ListCharacters(&context, v1::ListCharactersRequest(), &response).ok());
+      const auto& metadata = context.GetServerInitialMetadata();
+      const auto found = metadata.find("x-request-id");
+      ASSERT_NE(found, metadata.end());
+      (given ? echoed : made) = std::string(found->second.data(), found->second.size());
+    }
+  }
+  EXPECT_EQ(echoed, "trace-abc-123");
+  EXPECT_EQ(made.size(), 16u);
+  std::ifstream in(log);
+  std::map<std::string, std::vector<nlohmann::json>> access;  // by method
+  int lines = 0;
+  for (std::string line; std::getline(in, line);) {
+    ++lines;
+    nlohmann::json entry;
+    ASSERT_NO_THROW(entry = nlohmann::json::parse(line)) << line;
+    EXPECT_TRUE(entry.contains("time") && entry.contains("level")) << line;
+    if (entry.value("access", false)) {
+      access[entry["method"]].push_back(entry);
+    } else {
+      EXPECT_TRUE(entry["message"].is_string()) << line;
+    }
+  }
+  EXPECT_GT(lines, 5);
+  ASSERT_EQ(access["UploadCharacter"].size(), 1u);
+  EXPECT_EQ(access["UploadCharacter"][0]["status"], "OK");
+  EXPECT_EQ(access["UploadCharacter"][0]["character"].get<std::string>().size(), 12u);
+  ASSERT_EQ(access["Solve"].size(), 1u);
+  EXPECT_EQ(access["Solve"][0]["frames"], 2);
+  EXPECT_EQ(access["Solve"][0]["status"], "OK");
+  EXPECT_THAT(access["Solve"][0]["peer"].get<std::string>(), HasSubstr("127.0.0.1"));
+  EXPECT_GE(access["Solve"][0]["ms"].get<double>(), 0.0);
+  bool not_found = false;
+  for (const auto& e : access["GetCharacter"]) not_found = not_found || e["status"] == "NOT_FOUND";
+  EXPECT_TRUE(not_found) << "the refused describe has its access line";
+  std::set<std::string> ids;
+  for (const auto& e : access["ListCharacters"]) ids.insert(e["request_id"]);
+  EXPECT_TRUE(ids.count("trace-abc-123"));
+  EXPECT_TRUE(ids.count(made));
 }
 
 }  // namespace
