@@ -27,6 +27,8 @@ done
 if [ "$build_only" -eq 0 ]; then
   # The DCC clients' tests (Python package, headless Blender) and the benchmark's plot.
   packages+=(python3 python3-grpcio python3-numpy python3-protobuf blender gnuplot-nox)
+  # The JSON Schemas' test (tests/docs/schema_test.py).
+  packages+=(python3-jsonschema)
   # The Python package's install test: a virtual environment, pip, setuptools and wheel, all offline.
   packages+=(python3-venv python3-pip python3-setuptools python3-wheel)
 fi

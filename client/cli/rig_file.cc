@@ -141,7 +141,7 @@ RigFile LoadRigFile(const std::string& path) {
   } catch (const json::exception& e) {
     Invalid(fmt::format("{}: not valid JSON: {}", path, e.what()));
   }
-  CheckKeys(doc, path, {"rest", "fixed_vertices", "targets"}, {"rest", "targets"});
+  CheckKeys(doc, path, {"$schema", "rest", "fixed_vertices", "targets"}, {"rest", "targets"});  // $schema: for editors
   rig.rest = Mesh(doc["rest"], base, path + ": rest");
   const size_t vertices = static_cast<size_t>(rig.rest.vertices.rows());
   if (doc.contains("fixed_vertices")) {

@@ -196,6 +196,8 @@ std::string CheckPly(std::string text, const std::string& source) {
 //   dropped or half-read by OpenMesh, silently shifting every later index: each is checked here, 3 to 7 finite
 //   numbers, and refused naming the line.
 // `limits` (vertices, triangles, corners per face, valence) are checked in the same pass.
+// (Not tinyobjloader, libtinyobjloader-dev: OpenMesh reads every format here, PLY and STL too; these checks guard
+// its OBJ reader rather than add a second parser whose results could differ from it.)
 std::string CheckObj(std::string text, const std::string& source, const MeshTextLimits& limits) {
   const auto is_space = [](char c) { return std::isspace(static_cast<unsigned char>(c)) != 0; };
   const auto is_index = [](std::string_view v, bool required) {

@@ -157,7 +157,7 @@ def load_rig(path):
         _fail(path, f"cannot open: {error.strerror}")
     except ValueError as error:
         _fail(path, f"not valid JSON: {error}")
-    _check_keys(doc, path, {"rest", "fixed_vertices", "targets"}, ("rest", "targets"))
+    _check_keys(doc, path, {"$schema", "rest", "fixed_vertices", "targets"}, ("rest", "targets"))  # $schema: editors
     rest, faces = read_obj(os.path.join(base, _string(doc["rest"], f"{path}: rest")), f"{path}: rest")
 
     def mesh(value, where):
