@@ -153,6 +153,18 @@ class ClientTest(unittest.TestCase):
         self.assertIn(f"weights[1]: 'jawOpen' is not a target of this character (targets: {', '.join(names)})",
                       caught.exception.message)
 
+    def test_characters_are_named_by_id_prefix_or_name(self):
+        cid = self.character.id
+        self.assertEqual(self.client.resolve(cid[:12]), cid)
+        self.assertEqual(self.client.resolve("cylinder"), cid)
+        self.assertEqual(self.client.get(cid[:20]).id, cid)
+        np.testing.assert_array_equal(self.client.solve(cid[:12], WEIGHTS[0]).positions,
+                                      self.client.solve(cid, WEIGHTS[0]).positions)
+        with self.assertRaises(springblend.SpringblendError) as caught:
+            self.client.get("0123")  # too short for a prefix, and no character has that name
+        self.assertEqual(caught.exception.code, grpc.StatusCode.NOT_FOUND)
+        self.assertIn("character '0123': no character on the server has this name", caught.exception.message)
+
     def test_wrong_weight_count_is_invalid_argument_with_the_servers_message(self):
         with self.assertRaises(springblend.SpringblendError) as caught:
             self.client.solve(self.character.id, [0.5, 0.5, 0.5])

@@ -257,10 +257,32 @@ class Client:
             piece = pb.MeshPiece(kind=kind, shape=shape, offset=first, data=data[first * size:(first + count) * size])
             yield pb.UploadChunk(piece=piece)
 
+    def resolve(self, character):
+        """A character's full id from its id, 12 or more of its first hex digits (as the server's logs show
+        them), or its name, when that names exactly one character the server lists. Every method that takes a
+        character_id resolves it so."""
+        given = str(character)
+        is_hex = bool(given) and set(given) <= set("0123456789abcdef")
+        if is_hex and len(given) == 64:
+            return given
+        listed = self.list()
+        found = [c.id for c in listed if is_hex and len(given) >= 12 and c.id.startswith(given)]
+        found = found or [c.id for c in listed if c.name == given]
+        if len(found) == 1:
+            return found[0]
+        if not found:
+            raise SpringblendError(grpc.StatusCode.NOT_FOUND,
+                                   f"character '{given}': no character on the server has this "
+                                   f"{'id prefix or name' if is_hex and len(given) >= 12 else 'name'} (give a full "
+                                   "id, 12 or more of its hex digits, or a name; Client.list() shows them)")
+        raise invalid_argument(f"character '{given}' names {len(found)} characters "
+                               f"({', '.join(i[:16] for i in found)}): give more of the id")
+
     def get(self, character_id, with_faces=False, no_wait=False):
         """The Character message of an uploaded character; with_faces adds its packed triangles. It waits for a
         character being built (within the timeout); no_wait answers at once with its state: READY with the
         summary, BUILDING with the build's progress (.build), or STORED (only in the server's cache directory)."""
+        character_id = self.resolve(character_id)
         return self._call(self._characters.GetCharacter,
                           pb.GetCharacterRequest(id=character_id, with_faces=with_faces, no_wait=no_wait),
                           character_id)
@@ -276,6 +298,7 @@ class Client:
 
     def delete(self, character_id):
         """Removes a character from the server's memory and cache directory."""
+        character_id = self.resolve(character_id)
         self._call(self._characters.DeleteCharacter, pb.DeleteCharacterRequest(id=character_id), character_id)
 
     def healthy(self, timeout=5.0):
@@ -314,7 +337,7 @@ class Client:
         """Streams a Solve: yields one SolvedFrame per frame as the server finishes it.
 
         Args:
-            character_id: the id upload returned.
+            character_id: the id upload returned (or 12 or more of its hex digits, or its name: see resolve).
             weights: #frames by #targets (or one frame's #targets), in the character's target order; or by name,
                 a dict {"jawOpen": 0.7, ...} per frame (or one dict), the targets not named at 0. Unknown names
                 are refused, naming the character's targets.
@@ -324,6 +347,7 @@ class Client:
             pins: None, or per frame a mapping vertex -> position (or None).
             tolerance, max_iterations, linear, normals: SolveOptions (zero means the server's default).
         """
+        character_id = self.resolve(character_id)
         request = pb.SolveRequest(
             character_id=character_id, colliders=list(colliders),
             options=pb.SolveOptions(residual_tolerance=float(tolerance), max_iterations=int(max_iterations),
@@ -343,6 +367,7 @@ class Client:
         """Opens an interactive (slider) session; see InteractiveSession. previews=True: each frame is first
         answered at once by its preview (the rig's prediction; summary.converged False, termination "preview"),
         then by its solve unless a newer frame overtakes it."""
+        character_id = self.resolve(character_id)
         start = pb.InteractiveStart(
             character_id=character_id, colliders=list(colliders),
             options=pb.SolveOptions(residual_tolerance=float(tolerance), max_iterations=int(max_iterations),
