@@ -540,16 +540,18 @@ void BuildPath(const Rig& rig, int target, const TargetPathsOptions& options, Ta
   }
 
   // The kept samples: at first the ends, the knots, both sides of every switch and fold (where the path is
-  // not smooth) and the steps on a grid of kKeptGrid per unit (so a frame at such a weight starts at its
-  // answer, whatever the tolerance), as far as the cap allows; then, as long as an interval's interpolant
+  // not smooth), the steps on a grid of kKeptGrid per unit (so a frame at such a weight starts at its answer,
+  // whatever the tolerance) and then every other step, as far as the cap allows (on the face's jawOpen path,
+  // keeping every step against the grid alone: path frames 59 against 125 ms median, 12 of 17 finished
+  // locally against 8, the build 31 against 35 s); then, as long as an interval's interpolant
   // misses a dense sample inside it by more than the tolerance, the dense sample nearest its midpoint joins
   // (no solve needed). An interval with no dense sample inside is checked at its midpoint against an
   // equilibrium solved there from the interpolant, and split by that equilibrium while the check fails and
   // halving pays.
   std::vector<int> dense_of;  // per kept sample: its dense index, or -1 for a midpoint solved by a check
   {
-    // Priority 0: the ends and the knots; 1: both sides of switches and folds; 2: the grid. Lower priorities
-    // join while the cap allows.
+    // Priority 0: the ends and the knots; 1: both sides of switches and folds; 2: the grid; 3: the other steps.
+    // Lower priorities join while the cap allows.
     std::vector<int> priority(n_dense, 3);
     for (int k = 0; k < n_dense; ++k) {
       const bool end = k == 0 || k == n_dense - 1 || dense_break[k] || dense[k].alpha == 0.0 || dense[k].alpha == 1.0;
@@ -559,7 +561,7 @@ void BuildPath(const Rig& rig, int target, const TargetPathsOptions& options, Ta
       priority[k] = end ? 0 : rough ? 1 : grid ? 2 : 3;
     }
     int level = 0;
-    while (level < 2 && std::count_if(priority.begin(), priority.end(), [&](int p) { return p <= level + 1; }) <=
+    while (level < 3 && std::count_if(priority.begin(), priority.end(), [&](int p) { return p <= level + 1; }) <=
                             options.max_samples) {
       ++level;
     }

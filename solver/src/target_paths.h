@@ -12,8 +12,10 @@
 //    the choice is per interval);
 //  - beyond [0, 1], continuation from the nearer end;
 //  - a step that lands far from its extrapolated start went over a fold: the path breaks there.
-// Certified, keeping only the samples it needs: of the solved steps, the ends, knots, both sides of switches
-// and folds and a grid of 8 per unit are kept; an interval whose interpolant misses a solved step inside it by
+// Certified, within a cap on samples: every solved step is kept when the cap allows (they were solved anyway,
+// and the denser the samples, the closer a frame starts to its answer: on the face, frames in [0, 1] then
+// finish locally); else the ends, knots, both sides of switches and folds and a grid of 8 per unit are kept,
+// and an interval whose interpolant misses a solved step inside it by
 // more than `tolerance` of the diagonal is split at the step nearest its midpoint; an interval with no step
 // inside is split until the interpolant at its midpoint is within `tolerance` of an equilibrium solved there
 // from it (checks are made against the final samples: an interval next to a new sample is checked again), up

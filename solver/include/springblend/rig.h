@@ -86,9 +86,9 @@ struct RigOptions {
   // paper's sweep) at path_intervals steps per unit, one branch per target, and keep the physical corrections.
   // Every frame then starts from the linear blend plus each target's correction at its weight: a
   // single-target frame starts within path_tolerance of its answer and is finished where it is out of balance
-  // only, every frame starts close to its answer, and no frame depends on another. Certified: of the solved
-  // steps, only those the interpolant needs are kept (an interval is split while its interpolant misses a step
-  // inside it by more than path_tolerance of the bounding-box diagonal); an interval with no step inside is
+  // only, every frame starts close to its answer, and no frame depends on another. Certified: every solved step
+  // is kept while path_max_samples allows, else only those the interpolant needs (an interval is split while its
+  // interpolant misses a step inside it by more than path_tolerance of the bounding-box diagonal); an interval with no step inside is
   // split until the interpolant at its midpoint is within path_tolerance of an equilibrium solved there; up to
   // path_max_samples per target. A step that jumps to another branch (a fold) breaks the path there. Run in
   // parallel over the targets.
