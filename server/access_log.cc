@@ -3,9 +3,11 @@
 #include <fmt/chrono.h>
 #include <fmt/format.h>
 #include <spdlog/pattern_formatter.h>
+#include <nlohmann/json.hpp>
 #include <spdlog/spdlog.h>
 
 #include <atomic>
+#include <cmath>
 #include <chrono>
 #include <random>
 
@@ -29,25 +31,9 @@ bool Usable(const std::string& id) {
   return true;
 }
 
-// A string as a JSON string literal.
-std::string Quoted(std::string_view text) {
-  std::string out = "\"";
-  for (unsigned char c : text) {
-    switch (c) {
-      case '"': out += "\\\""; break;
-      case '\\': out += "\\\\"; break;
-      case '\n': out += "\\n"; break;
-      case '\r': out += "\\r"; break;
-      case '\t': out += "\\t"; break;
-      default:
-        if (c < 0x20) {
-          out += fmt::format("\\u{:04x}", c);
-        } else {
-          out += static_cast<char>(c);
-        }
-    }
-  }
-  return out + "\"";
+// JSON text (bytes that are not UTF-8 replaced, as a client's may be).
+std::string Dump(const nlohmann::ordered_json& value) {
+  return value.dump(-1, ' ', false, nlohmann::ordered_json::error_handler_t::replace);
 }
 
 std::string Timestamp(std::chrono::system_clock::time_point time) {
@@ -67,7 +53,7 @@ class JsonFormatter final : public spdlog::formatter {
     if (payload.rfind("\"access\":", 0) == 0) {
       line += payload;
     } else {
-      line += "\"message\":" + Quoted(payload);
+      line += "\"message\":" + Dump(std::string(payload));
     }
     line += "}\n";
     dest.append(line.data(), line.data() + line.size());
@@ -95,12 +81,15 @@ void EndCall(Metrics& metrics, const CallInfo& call, const grpc::Status& status)
   const double ms = std::chrono::duration<double, std::milli>(MetricsClock::now() - call.started).count();
   const std::string character = call.character.substr(0, 12);
   if (json_logs) {
-    std::string fields = fmt::format("\"access\":true,\"method\":{},\"status\":{},\"ms\":{:.1f},\"peer\":{},\"request_id\":{}",
-                                     Quoted(call.method), Quoted(code), ms, Quoted(call.peer), Quoted(call.request_id));
-    if (!character.empty()) fields += ",\"character\":" + Quoted(character);
-    if (call.frames >= 0) fields += fmt::format(",\"frames\":{}", call.frames);
-    if (!status.ok()) fields += ",\"error\":" + Quoted(status.error_message().substr(0, 400));
-    spdlog::info("{}", fields);
+    // The members of one object, "access" first: the formatter splices them into the line's object.
+    nlohmann::ordered_json fields = {{"access", true},           {"method", call.method},
+                                     {"status", code},           {"ms", std::round(ms * 10.0) / 10.0},
+                                     {"peer", call.peer},        {"request_id", call.request_id}};
+    if (!character.empty()) fields["character"] = character;
+    if (call.frames >= 0) fields["frames"] = call.frames;
+    if (!status.ok()) fields["error"] = status.error_message().substr(0, 400);
+    const std::string object = Dump(fields);
+    spdlog::info("{}", std::string_view(object).substr(1, object.size() - 2));
   } else {
     spdlog::info("access {} {}{}{} {:.1f} ms peer={} request_id={}", call.method, code,
                  character.empty() ? "" : " character=" + character,
@@ -112,7 +101,5 @@ void SetJsonLogs(bool json) {
   json_logs = json;
   if (json) spdlog::default_logger()->set_formatter(std::make_unique<JsonFormatter>());
 }
-
-bool JsonLogs() { return json_logs; }
 
 }  // namespace springblend::server

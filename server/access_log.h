@@ -37,6 +37,5 @@ void EndCall(Metrics& metrics, const CallInfo& call, const grpc::Status& status)
 // Logs as JSON objects, one per line ({"time", "level", "message"}; access lines carry their fields as members),
 // instead of text. Set once at start-up, before any call; installs the formatter on spdlog's default logger.
 void SetJsonLogs(bool json);
-bool JsonLogs();
 
 }  // namespace springblend::server

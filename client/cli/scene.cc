@@ -2,11 +2,11 @@
 
 #include <fmt/format.h>
 
-#include <algorithm>
 #include <fstream>
 #include <nlohmann/json.hpp>
 #include <sstream>
 
+#include "springblend/client.h"
 #include "springblend/error.h"
 
 namespace springblend::cli {
@@ -41,16 +41,6 @@ Scene LoadScene(const std::string& path) {
   text << in.rdbuf();
   return ParseScene(text.str(), path);
 }
-
-namespace {
-
-std::string Known(const std::vector<std::string>& names) {
-  std::string out;
-  for (const auto& n : names) out += (out.empty() ? "" : ", ") + n;
-  return out.empty() ? "none" : out;
-}
-
-}  // namespace
 
 Weights ParseWeightItems(const std::vector<std::string>& items) {
   Weights out;
@@ -87,18 +77,9 @@ Weights ParseWeightItems(const std::vector<std::string>& items) {
 std::vector<double> ResolveWeights(const Weights& weights, const std::vector<std::string>& names,
                                    const std::string& where) {
   if (!weights.by_name) return weights.values;
-  std::vector<double> out(names.size(), 0.0);
-  std::vector<char> seen(names.size(), 0);
-  for (const auto& [name, value] : weights.named) {
-    const auto it = std::find(names.begin(), names.end(), name);
-    if (it == names.end()) {
-      throw Error(ErrorCode::kInvalidInput,
-                  fmt::format("{}: '{}' is not a target of this character (targets: {})", where, name, Known(names)));
-    }
-    const size_t t = static_cast<size_t>(it - names.begin());
-    if (seen[t]) throw Error(ErrorCode::kInvalidInput, fmt::format("{}: '{}' is given twice", where, name));
-    seen[t] = 1;
-    out[t] = value;
+  std::vector<double> out;
+  if (const auto wrong = WeightsByName(weights.named, names, &out)) {
+    throw Error(ErrorCode::kInvalidInput, fmt::format("{}: {}", where, *wrong));
   }
   return out;
 }
@@ -129,7 +110,8 @@ Scene ParseScene(const std::string& text, const std::string& path) {
     if (!j.is_array() || j.size() != 3) throw invalid(where, "must be [x, y, z]");
     return Eigen::Vector3d(number(j[0], where + "[0]"), number(j[1], where + "[1]"), number(j[2], where + "[2]"));
   };
-  const auto array = [&](const nlohmann::json& parent, const char* key, const std::string& where) {
+  const auto array = [&](const nlohmann::json& parent, const char* key,
+                         const std::string& where) -> const nlohmann::json& {
     const nlohmann::json& j = parent[key];
     if (!j.is_array()) throw invalid(where, fmt::format("must be a list, not {}", j.type_name()));
     return j;
@@ -138,7 +120,7 @@ Scene ParseScene(const std::string& text, const std::string& path) {
   Scene scene;
   scene.source = path;
   if (doc.contains("colliders")) {
-    const nlohmann::json colliders = array(doc, "colliders", "colliders");
+    const nlohmann::json& colliders = array(doc, "colliders", "colliders");
     for (size_t c = 0; c < colliders.size(); ++c) {
       if (!colliders[c].is_string()) throw invalid(fmt::format("colliders[{}]", c), "must be a string such as \"sphere:0,0,0,1\"");
       scene.colliders.push_back(colliders[c].get<std::string>());
@@ -171,7 +153,7 @@ Scene ParseScene(const std::string& text, const std::string& path) {
                                 w.type_name()));
     }
     if (f.contains("colliders")) {
-      const nlohmann::json colliders = array(f, "colliders", where + ".colliders");
+      const nlohmann::json& colliders = array(f, "colliders", where + ".colliders");
       for (size_t c = 0; c < colliders.size(); ++c) {
         const auto& m = colliders[c];
         const std::string cw = fmt::format("{}.colliders[{}]", where, c);
@@ -191,7 +173,7 @@ Scene ParseScene(const std::string& text, const std::string& path) {
       }
     }
     if (f.contains("pins")) {
-      const nlohmann::json pins = array(f, "pins", where + ".pins");
+      const nlohmann::json& pins = array(f, "pins", where + ".pins");
       for (size_t k = 0; k < pins.size(); ++k) {
         const auto& p = pins[k];
         const std::string pw = fmt::format("{}.pins[{}]", where, k);

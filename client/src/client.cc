@@ -1,5 +1,6 @@
 #include "springblend/client.h"
 
+#include <algorithm>
 #include <iterator>
 #include <grpcpp/grpcpp.h>
 
@@ -57,6 +58,25 @@ Client::Client(std::shared_ptr<grpc::Channel> channel, ClientOptions options)
     : options_(std::move(options)), channel_(std::move(channel)) {
   characters_ = v1::CharacterService::NewStub(channel_);
   solves_ = v1::SolveService::NewStub(channel_);
+}
+
+std::optional<std::string> WeightsByName(const std::vector<std::pair<std::string, double>>& named,
+                                         const std::vector<std::string>& names, std::vector<double>* weights) {
+  weights->assign(names.size(), 0.0);
+  std::vector<char> seen(names.size(), 0);
+  for (const auto& [name, value] : named) {
+    const auto it = std::find(names.begin(), names.end(), name);
+    if (it == names.end()) {
+      std::string known;
+      for (const auto& n : names) known += (known.empty() ? "" : ", ") + n;
+      return fmt::format("'{}' is not a target of this character (targets: {})", name, known.empty() ? "none" : known);
+    }
+    const auto t = static_cast<size_t>(it - names.begin());
+    if (seen[t]) return fmt::format("'{}' is given twice", name);
+    seen[t] = 1;
+    (*weights)[t] = value;
+  }
+  return std::nullopt;
 }
 
 const char* StatusName(int code) {

@@ -8,6 +8,7 @@
 #include <algorithm>
 #include <chrono>
 #include <cstring>
+#include <map>
 
 #include "springblend/client.h"
 #include "springblend/version.h"
@@ -140,15 +141,15 @@ Collider Collider::FromMesh(Mesh mesh) {
 
 struct Client::Impl {
   springblend::Client client;
-  std::vector<std::pair<std::string, std::vector<std::string>>> names;  // character id -> its weight names
+  std::map<std::string, std::vector<std::string>> names;  // character id -> its weight names
 
   const std::vector<std::string>& TargetNames(const std::string& id) {
-    for (const auto& [known, list] : names) {
-      if (known == id) return list;
+    auto found = names.find(id);
+    if (found == names.end()) {
+      const v1::Character c = Guard([&] { return client.Get(id); });
+      found = names.emplace(id, std::vector<std::string>(c.target_names().begin(), c.target_names().end())).first;
     }
-    const v1::Character c = Guard([&] { return client.Get(id); });
-    names.emplace_back(id, std::vector<std::string>(c.target_names().begin(), c.target_names().end()));
-    return names.back().second;
+    return found->second;
   }
 };
 
@@ -242,17 +243,9 @@ int Client::Solve(const std::string& character_id, const std::vector<Frame>& fra
       if (!frame.weights.empty()) {
         throw Invalid(fmt::format("frames[{}]: give weights or named_weights, not both", f));
       }
-      const std::vector<std::string>& names = impl_->TargetNames(character_id);
-      std::vector<double> weights(names.size(), 0.0);
-      for (const auto& [name, value] : frame.named_weights) {
-        const auto it = std::find(names.begin(), names.end(), name);
-        if (it == names.end()) {
-          std::string known;
-          for (const auto& n : names) known += (known.empty() ? "" : ", ") + n;
-          throw Invalid(fmt::format("frames[{}].named_weights: '{}' is not a target of this character (targets: {})",
-                                    f, name, known));
-        }
-        weights[static_cast<size_t>(it - names.begin())] = value;
+      std::vector<double> weights;
+      if (const auto wrong = WeightsByName(frame.named_weights, impl_->TargetNames(character_id), &weights)) {
+        throw Invalid(fmt::format("frames[{}].named_weights: {}", f, *wrong));
       }
       for (double w : weights) out->add_weights(w);
     } else {

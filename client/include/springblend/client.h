@@ -5,6 +5,8 @@
 #include <chrono>
 #include <functional>
 #include <memory>
+#include <utility>
+#include <optional>
 #include <stdexcept>
 #include <string>
 #include <vector>
@@ -13,6 +15,12 @@
 #include "springblend/v1/springblend.grpc.pb.h"
 
 namespace springblend {
+
+// Weights given by target name, placed in a character's weight order (`names`: its target names; the targets
+// not named get 0) into *weights. Returns what is wrong in words when a name is unknown or given twice
+// ("'jawopen' is not a target of this character (targets: jawOpen, mouthSmile_L)"), else nullopt.
+std::optional<std::string> WeightsByName(const std::vector<std::pair<std::string, double>>& named,
+                                         const std::vector<std::string>& names, std::vector<double>* weights);
 
 // A grpc::StatusCode's name: "INVALID_ARGUMENT", "UNAVAILABLE", ... ("UNKNOWN" for a number out of range).
 const char* StatusName(int code);
