@@ -111,6 +111,13 @@ int RunBlend(const BlendArgs& args) {
   rig_options.bending_stiffness = args.bending_stiffness;
   rig_options.linear_solver = LinearSolverTypeFromString(args.solver);
   rig_options.target_paths = !args.no_target_paths;
+  if (args.linear) {
+    // The linear blendshape needs none of the physics: no paths, no volume to place in every shape.
+    rig_options.target_paths = false;
+    rig_options.interior = false;
+    rig_options.shell = false;
+    rig_options.anchor = false;
+  }
 
   std::shared_ptr<const Rig> rig;
   if (!args.rig.empty()) {

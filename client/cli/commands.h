@@ -20,6 +20,8 @@ inline constexpr int kExitUnavailable = 4;  // the server is unreachable, busy o
 using Runner = std::function<int()>;
 
 Runner AddBlendCommand(CLI::App& app);
+// bake-rig: a rig's physics baked into a plain blendshape rig (bake_command.cc).
+Runner AddBakeCommand(CLI::App& app);
 // upload, solve, list, delete, health: name and runner of each.
 std::vector<std::pair<std::string, Runner>> AddServiceCommands(CLI::App& app);
 

@@ -19,6 +19,7 @@ int main(int argc, char** argv) {
   int threads = 0;
   app.add_option("--threads", threads, "worker threads for assembly (0: all cores)")->check(CLI::Range(0, 1024));
   cli::Runner blend = cli::AddBlendCommand(app);
+  cli::Runner bake = cli::AddBakeCommand(app);
   const auto remote = cli::AddServiceCommands(app);
   try {
     app.parse(argc, argv);
@@ -33,6 +34,7 @@ int main(int argc, char** argv) {
   }
   try {
     if (app.got_subcommand("blend")) return blend();
+    if (app.got_subcommand("bake-rig")) return bake();
     for (const auto& [name, run] : remote) {
       if (app.got_subcommand(name)) return run();
     }

@@ -3,6 +3,8 @@
 #include <fmt/format.h>
 
 #include <cstdlib>
+#include <string>
+#include <vector>
 #include <fstream>
 #include <sstream>
 
@@ -176,6 +178,29 @@ CallFailure Explain(const std::string& command, const CallError& error, const Co
                                code == grpc::StatusCode::UNAUTHENTICATED || code == grpc::StatusCode::PERMISSION_DENIED;
   failure.exit_code = callers_mistake ? kExitBadInput : kExitUnavailable;
   return failure;
+}
+
+std::string ResolveCharacter(Client& client, const std::string& command, const std::string& given) {
+  const bool hex = !given.empty() && given.find_first_not_of("0123456789abcdef") == std::string::npos;
+  if (hex && given.size() == 64) return given;
+  const std::vector<v1::Character> listed = Call(command + " (list, to find --character)", [&] { return client.List(); });
+  std::vector<std::string> by_prefix, by_name;
+  for (const v1::Character& c : listed) {
+    if (hex && given.size() >= 12 && c.id().compare(0, given.size(), given) == 0) by_prefix.push_back(c.id());
+    if (c.name() == given) by_name.push_back(c.id());
+  }
+  const std::vector<std::string>& found = !by_prefix.empty() ? by_prefix : by_name;
+  if (found.size() == 1) return found[0];
+  if (found.empty()) {
+    throw Error(ErrorCode::kInvalidInput,
+                fmt::format("--character '{}': no character on the server has this {} (give a full id, 12 or "
+                            "more of its hex digits, or a name; springblend list shows them)",
+                            given, hex && given.size() >= 12 ? "id prefix or name" : "name"));
+  }
+  std::string ids;
+  for (const std::string& id : found) ids += (ids.empty() ? "" : ", ") + id.substr(0, 16);
+  throw Error(ErrorCode::kInvalidInput,
+              fmt::format("--character '{}' names {} characters ({}): give more of the id", given, found.size(), ids));
 }
 
 }  // namespace springblend::cli

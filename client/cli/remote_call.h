@@ -78,4 +78,8 @@ auto Call(const std::string& call, F&& run) -> decltype(run()) {
   }
 }
 
+// --character as people give it: a full id, a prefix of 12 or more of its hex digits (as the logs and `list`
+// show them), or a character's name; a prefix or name must name exactly one character the server lists.
+std::string ResolveCharacter(Client& client, const std::string& command, const std::string& given);
+
 }  // namespace springblend::cli

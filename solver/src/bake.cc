@@ -1,0 +1,319 @@
+#include "springblend/bake.h"
+
+#include <fmt/format.h>
+#include <tbb/blocked_range.h>
+#include <tbb/enumerable_thread_specific.h>
+#include <tbb/parallel_for.h>
+
+#include <algorithm>
+#include <chrono>
+#include <cmath>
+#include <limits>
+#include <set>
+
+#include "rig_internals.h"
+#include "springblend/error.h"
+
+namespace springblend {
+
+namespace {
+
+// Largest distance of a vertex between two shapes.
+double Distance(const Points& a, const Points& b) { return std::sqrt((a - b).rowwise().squaredNorm().maxCoeff()); }
+
+// The in-betweens that make the largest error of the piecewise-linear path through them smallest, for their
+// count, among the samples (dynamic programming over the samples: err[i][j] is the largest error of the straight
+// segment from sample i to sample j at the samples between them). Returns the interior sample indices, ascending,
+// and the error.
+std::pair<std::vector<int>, double> ChooseInbetweens(const std::vector<Points>& shapes, const std::vector<double>& alphas,
+                                                     int count, double tolerance, double diagonal) {
+  const int n = static_cast<int>(shapes.size()) - 1;  // segments of the finest path
+  std::vector<std::vector<double>> err(n + 1, std::vector<double>(n + 1, 0.0));
+  for (int i = 0; i <= n; ++i) {
+    for (int j = i + 2; j <= n; ++j) {
+      double e = 0.0;
+      for (int k = i + 1; k < j; ++k) {
+        const double s = (alphas[k] - alphas[i]) / (alphas[j] - alphas[i]);
+        e = std::max(e, Distance(shapes[k], (1.0 - s) * shapes[i] + s * shapes[j]));
+      }
+      err[i][j] = e / diagonal;
+    }
+  }
+  count = std::min(count, n - 1);
+  const double inf = std::numeric_limits<double>::infinity();
+  // best[k][j]: the least largest error of a path from sample 0 to sample j through k chosen samples.
+  std::vector<std::vector<double>> best(count + 1, std::vector<double>(n + 1, inf));
+  std::vector<std::vector<int>> from(count + 1, std::vector<int>(n + 1, 0));
+  for (int j = 1; j <= n; ++j) best[0][j] = err[0][j];
+  for (int k = 1; k <= count; ++k) {
+    for (int j = k + 1; j <= n; ++j) {
+      for (int i = k; i < j; ++i) {
+        const double e = std::max(best[k - 1][i], err[i][j]);
+        if (e < best[k][j]) {
+          best[k][j] = e;
+          from[k][j] = i;
+        }
+      }
+    }
+  }
+  int k = count;
+  if (tolerance > 0.0) {
+    for (int c = 0; c <= count; ++c) {
+      if (best[c][n] <= tolerance) {
+        k = c;
+        break;
+      }
+    }
+  }
+  std::vector<int> chosen;
+  for (int j = n, c = k; c > 0; --c) {
+    j = from[c][j];
+    chosen.push_back(j);
+  }
+  std::reverse(chosen.begin(), chosen.end());
+  return {chosen, best[k][n]};
+}
+
+double Elapsed(std::chrono::steady_clock::time_point since) {
+  return std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - since).count();
+}
+
+}  // namespace
+
+void BakeOptions::Validate() const {
+  const auto bad = [](const std::string& what) { throw Error(ErrorCode::kInvalidInput, "bake options: " + what); };
+  if (samples < 2 || samples > 1024) bad(fmt::format("samples = {} is outside [2, 1024]", samples));
+  if (inbetweens < 0 || inbetweens > samples - 1) {
+    bad(fmt::format("inbetweens = {} is outside [0, samples - 1 = {}]", inbetweens, samples - 1));
+  }
+  if (!(tolerance >= 0.0) || !std::isfinite(tolerance)) bad(fmt::format("tolerance = {} must be >= 0", tolerance));
+  if (!(pair_threshold > 0.0 && pair_threshold < 1.0)) {
+    bad(fmt::format("pair_threshold = {} is outside (0, 1)", pair_threshold));
+  }
+  if (!(region_fraction > 0.0 && region_fraction < 1.0)) {
+    bad(fmt::format("region_fraction = {} is outside (0, 1)", region_fraction));
+  }
+  if (pair_mode == BakePairs::kList && pairs.empty()) bad("the pair list is empty");
+}
+
+FrameSource LocalFrameSource(std::shared_ptr<const Rig> rig, SolveOptions options) {
+  options.Validate();
+  return [rig = std::move(rig), options](const std::vector<std::vector<double>>& weights,
+                                         std::vector<SolvedShape>* out) {
+    for (const auto& w : weights) ValidateWeights(*rig, w);
+    out->assign(weights.size(), SolvedShape{});
+    tbb::enumerable_thread_specific<std::unique_ptr<Solver>> solvers;
+    tbb::parallel_for(tbb::blocked_range<size_t>(0, weights.size(), 1), [&](const tbb::blocked_range<size_t>& range) {
+      std::unique_ptr<Solver>& solver = solvers.local();
+      if (!solver) solver = std::make_unique<Solver>(rig, options);
+      for (size_t i = range.begin(); i != range.end(); ++i) {
+        Frame frame;
+        frame.weights = weights[i];
+        const SolveSummary summary = solver->Solve(frame, &(*out)[i].positions);
+        (*out)[i].converged = summary.converged();
+      }
+    });
+  };
+}
+
+BakeInput BakeInputOf(const Rig& rig) {
+  BakeInput input;
+  input.rest = rig.rest().vertices;
+  input.target_names = rig.target_names();
+  input.diagonal = rig.summary().bounding_box_diagonal;
+  const auto& combinations = rig.internals().controls.combinations;
+  for (size_t c = 0; c < combinations.size(); ++c) {
+    input.combinations.push_back({rig.combination_names()[c], combinations[c].drivers});
+  }
+  return input;
+}
+
+Points BakedRig::Evaluate(const std::vector<double>& weights) const {
+  if (weights.size() != targets.size()) {
+    throw Error(ErrorCode::kInvalidInput,
+                fmt::format("{} weights for a baked rig of {} targets", weights.size(), targets.size()));
+  }
+  Points out = rest;
+  for (size_t t = 0; t < targets.size(); ++t) {
+    const double w = weights[t];
+    if (w == 0.0) continue;
+    const BakedTarget& target = targets[t];
+    const size_t knots = target.inbetweens.size() + 1;
+    const auto weight_of = [&](size_t i) { return i < target.inbetweens.size() ? target.inbetweens[i].weight : 1.0; };
+    const auto shape_of = [&](size_t i) -> const Points& {
+      return i < target.inbetweens.size() ? target.inbetweens[i].positions : target.full;
+    };
+    size_t i = 0;
+    while (i + 1 < knots && w > weight_of(i)) ++i;
+    const double a = i == 0 ? 0.0 : weight_of(i - 1);
+    const double b = weight_of(i);
+    const double u = (w - a) / (b - a);
+    out += u * (shape_of(i) - rest);
+    if (i > 0) out += (1.0 - u) * (shape_of(i - 1) - rest);
+  }
+  for (const BakedCombination& c : combinations) {
+    double product = 1.0;
+    for (int d : c.drivers) product *= weights[d];
+    if (product == 0.0) continue;
+    out += product * (c.shape - rest);
+    for (int d : c.drivers) out -= product * (targets[d].full - rest);
+  }
+  return out;
+}
+
+BakedRig BakeRig(const BakeInput& input, const FrameSource& frames, const BakeOptions& options) {
+  options.Validate();
+  const auto start = std::chrono::steady_clock::now();
+  const int m = static_cast<int>(input.target_names.size());
+  if (m == 0) throw Error(ErrorCode::kInvalidInput, "the rig has no targets to bake");
+  if (!(input.diagonal > 0.0)) throw Error(ErrorCode::kInvalidInput, "the rest shape has no extent");
+  BakedRig baked;
+  baked.rest = input.rest;
+  baked.diagonal = input.diagonal;
+  BakeSummary& summary = baked.summary;
+  const auto solve = [&](const std::vector<std::vector<double>>& weights, std::vector<SolvedShape>* out) {
+    frames(weights, out);
+    if (out->size() != weights.size()) {
+      throw Error(ErrorCode::kInternal, fmt::format("{} frames solved for {} asked", out->size(), weights.size()));
+    }
+    for (const SolvedShape& s : *out) {
+      if (s.positions.rows() != input.rest.rows() || s.positions.cols() != 3 || !s.positions.allFinite()) {
+        throw Error(ErrorCode::kNumerical, "a solved frame has not the rest shape's vertices or is not finite");
+      }
+      summary.unconverged_frames += s.converged ? 0 : 1;
+    }
+    summary.frames += static_cast<int>(weights.size());
+  };
+  const auto unit = [&](const std::vector<int>& on) {
+    std::vector<double> w(m, 0.0);
+    for (int t : on) w[t] = 1.0;
+    return w;
+  };
+
+  // 1. Every target's path at samples + 1 weights in [0, 1] (the rest shape at 0 is the rig's own).
+  const int n = options.samples;
+  std::vector<double> alphas(n + 1);
+  for (int j = 0; j <= n; ++j) alphas[j] = static_cast<double>(j) / n;
+  std::vector<std::vector<double>> weights;
+  for (int t = 0; t < m; ++t) {
+    for (int j = 1; j <= n; ++j) {
+      std::vector<double> w(m, 0.0);
+      w[t] = alphas[j];
+      weights.push_back(std::move(w));
+    }
+  }
+  std::vector<SolvedShape> solved;
+  solve(weights, &solved);
+  if (options.progress) options.progress("paths", m, m);
+
+  // 2. In-betweens per target, in parallel over the targets (each choice is a function of its own samples).
+  baked.targets.resize(m);
+  tbb::parallel_for(0, m, [&](int t) {
+    std::vector<Points> shapes(n + 1);
+    shapes[0] = input.rest;
+    for (int j = 1; j <= n; ++j) shapes[j] = solved[static_cast<size_t>(t) * n + j - 1].positions;
+    const auto [chosen, error] = ChooseInbetweens(shapes, alphas, options.inbetweens, options.tolerance, input.diagonal);
+    BakedTarget& target = baked.targets[t];
+    target.name = input.target_names[t];
+    for (int k : chosen) target.inbetweens.push_back({alphas[k], shapes[k]});
+    target.full = shapes[n];
+    target.max_error = error;
+    double linear = 0.0;
+    for (int j = 1; j < n; ++j) linear = std::max(linear, Distance(shapes[j], (1.0 - alphas[j]) * shapes[0] + alphas[j] * shapes[n]));
+    target.linear_error = linear / input.diagonal;
+  });
+  for (const BakedTarget& t : baked.targets) {
+    summary.max_error = std::max(summary.max_error, t.max_error);
+    summary.linear_max_error = std::max(summary.linear_max_error, t.linear_error);
+  }
+  if (options.progress) options.progress("inbetweens", m, m);
+
+  // 3. Combinations: the rig's own, and the pairs asked for or found. A pair is a candidate where the two
+  // targets move a common region; it is kept where its solved mix is farther than the threshold from the baked
+  // rig without it (any pair the list names is kept).
+  struct Candidate {
+    std::string name;
+    std::vector<int> drivers;
+    bool from_rig = false;
+    bool forced = false;
+  };
+  std::vector<Candidate> candidates;
+  std::set<std::vector<int>> taken;
+  for (const BakeInput::Combination& c : input.combinations) {
+    std::vector<int> drivers = c.drivers;
+    std::sort(drivers.begin(), drivers.end());
+    if (drivers.size() < 2 || drivers.back() >= m || !taken.insert(drivers).second) {
+      throw Error(ErrorCode::kInvalidInput, fmt::format("combination '{}' has no valid drivers", c.name));
+    }
+    candidates.push_back({c.name, drivers, true, true});
+  }
+  const auto index_of = [&](const std::string& name) {
+    const auto it = std::find(input.target_names.begin(), input.target_names.end(), name);
+    if (it == input.target_names.end()) {
+      std::string known;
+      for (const auto& k : input.target_names) known += (known.empty() ? "" : ", ") + k;
+      throw Error(ErrorCode::kNotFound, fmt::format("pair '{}': not a target of this rig (targets: {})", name, known));
+    }
+    return static_cast<int>(it - input.target_names.begin());
+  };
+  if (options.pair_mode == BakePairs::kList) {
+    for (const auto& [a, b] : options.pairs) {
+      std::vector<int> drivers = {index_of(a), index_of(b)};
+      if (drivers[0] == drivers[1]) throw Error(ErrorCode::kInvalidInput, fmt::format("pair '{}*{}' names one target twice", a, b));
+      std::sort(drivers.begin(), drivers.end());
+      if (!taken.insert(drivers).second) continue;
+      candidates.push_back({a + "_" + b, drivers, false, true});
+    }
+  } else if (options.pair_mode == BakePairs::kAuto) {
+    // The region each target moves: vertices moving by more than region_fraction of its largest move.
+    std::vector<std::vector<char>> region(m);
+    for (int t = 0; t < m; ++t) {
+      const Eigen::VectorXd move = (baked.targets[t].full - input.rest).rowwise().norm();
+      const double largest = move.size() > 0 ? move.maxCoeff() : 0.0;
+      region[t].assign(move.size(), 0);
+      for (Eigen::Index v = 0; v < move.size(); ++v) {
+        region[t][v] = largest > 0.0 && move[v] > options.region_fraction * largest;
+      }
+    }
+    for (int a = 0; a < m; ++a) {
+      for (int b = a + 1; b < m; ++b) {
+        bool common = false;
+        for (size_t v = 0; v < region[a].size() && !common; ++v) common = region[a][v] && region[b][v];
+        if (!common || taken.count({a, b})) continue;
+        taken.insert({a, b});
+        candidates.push_back({input.target_names[a] + "_" + input.target_names[b], {a, b}, false, false});
+        ++summary.candidate_pairs;
+      }
+    }
+  }
+  // Solved with their drivers at 1; placed smallest first, so that a larger combination's sculpt accounts for
+  // the smaller ones among its drivers (each is then reproduced exactly with its drivers at 1).
+  std::stable_sort(candidates.begin(), candidates.end(),
+                   [](const Candidate& a, const Candidate& b) { return a.drivers.size() < b.drivers.size(); });
+  weights.clear();
+  for (const Candidate& c : candidates) weights.push_back(unit(c.drivers));
+  std::vector<SolvedShape> mixes;
+  if (!weights.empty()) solve(weights, &mixes);
+  for (size_t c = 0; c < candidates.size(); ++c) {
+    const Candidate& candidate = candidates[c];
+    const std::vector<double> w = unit(candidate.drivers);
+    const Points without = baked.Evaluate(w);
+    const double error = Distance(mixes[c].positions, without) / input.diagonal;
+    if (!candidate.forced && error <= options.pair_threshold) continue;
+    BakedCombination combination;
+    combination.name = candidate.name;
+    combination.drivers = candidate.drivers;
+    combination.error_without = error;
+    combination.from_rig = candidate.from_rig;
+    // With its drivers at 1 the combination adds (shape - rest) less each driver's (full - rest).
+    combination.shape = mixes[c].positions - without + input.rest;
+    for (int d : candidate.drivers) combination.shape += baked.targets[d].full - input.rest;
+    baked.combinations.push_back(std::move(combination));
+    if (!candidate.from_rig) ++summary.kept_pairs;
+  }
+  if (options.progress) options.progress("combinations", static_cast<int>(candidates.size()), static_cast<int>(candidates.size()));
+  summary.ms = Elapsed(start);
+  return baked;
+}
+
+}  // namespace springblend

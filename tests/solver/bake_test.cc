@@ -1,0 +1,194 @@
+// Baking a rig into a plain blendshape rig (springblend/bake.h), on the bundled cylinder with an in-between and a
+// combination: the bake reproduces the solved frames it keeps exactly (in-betweens, full shapes, the
+// combination with its drivers at 1), beats the plain linear blendshape at weights it never saw, its evaluator
+// is the rig-file semantics (a Rig built from the baked shapes blends the same), and more in-betweens never do
+// worse.
+#include <gmock/gmock.h>
+#include <gtest/gtest.h>
+
+#include <limits>
+
+#include "springblend/bake.h"
+#include "springblend/error.h"
+#include "springblend/rig.h"
+#include "springblend/solve.h"
+#include "test_util.h"
+
+namespace springblend {
+namespace {
+
+using ::testing::HasSubstr;
+using testing::CatchError;
+using testing::DataPath;
+using testing::MaxDistance;
+
+// The cylinder bending (with an in-between at 0.5 that is another pose) and twisting, and their corrective.
+std::shared_ptr<const Rig> Cylinder() {
+  std::vector<TargetSpec> specs(3);
+  specs[0].name = "bend";
+  specs[0].mesh = LoadMesh(DataPath("cylinder/poses-2_cylinder-2.obj"));
+  specs[0].inbetweens.push_back({0.5, LoadMesh(DataPath("cylinder/poses-2_cylinder-1.obj"))});
+  specs[1].name = "twist";
+  specs[1].mesh = LoadMesh(DataPath("cylinder/poses-2_cylinder-3.obj"));
+  specs[2].name = "bend_twist";
+  specs[2].mesh = LoadMesh(DataPath("cylinder/poses-2_cylinder-4.obj"));
+  specs[2].combination = {"bend", "twist"};
+  return Rig::Build(LoadMesh(DataPath("cylinder/cylinder.obj")), std::move(specs), testing::TestRigOptions());
+}
+
+Points Solved(const std::shared_ptr<const Rig>& rig, const std::vector<double>& weights) {
+  Solver solver(rig);
+  Points x;
+  const SolveSummary summary = solver.Solve({weights}, &x);
+  EXPECT_TRUE(summary.converged()) << summary.message;
+  return x;
+}
+
+class BakeTest : public ::testing::Test {
+ protected:
+  static std::shared_ptr<const Rig> rig() {
+    static const std::shared_ptr<const Rig> rig = Cylinder();
+    return rig;
+  }
+  static const BakedRig& baked() {
+    static const BakedRig baked = [] {
+      BakeOptions options;
+      options.samples = 16;
+      options.inbetweens = 3;
+      return BakeRig(BakeInputOf(*rig()), LocalFrameSource(rig()), options);
+    }();
+    return baked;
+  }
+};
+
+TEST_F(BakeTest, ReproducesTheSolvedFramesItKeeps) {
+  const BakedRig& b = baked();
+  const double diagonal = rig()->summary().bounding_box_diagonal;
+  ASSERT_EQ(b.targets.size(), 2u);
+  EXPECT_EQ(b.summary.unconverged_frames, 0);
+  // The rig's own combination is baked, with the mix it corrects solved.
+  ASSERT_GE(b.combinations.size(), 1u);
+  EXPECT_TRUE(b.combinations[0].from_rig);
+  EXPECT_EQ(b.combinations[0].drivers, (std::vector<int>{0, 1}));
+  for (size_t t = 0; t < b.targets.size(); ++t) {
+    const BakedTarget& target = b.targets[t];
+    EXPECT_EQ(target.inbetweens.size(), 3u) << target.name;
+    for (const BakedShape& s : target.inbetweens) {
+      std::vector<double> w(2, 0.0);
+      w[t] = s.weight;
+      EXPECT_GT(s.weight, 0.0);
+      EXPECT_LT(s.weight, 1.0);
+      EXPECT_LE(MaxDistance(b.Evaluate(w), Solved(rig(), w)), 1e-9 * diagonal) << target.name << " at " << s.weight;
+    }
+    std::vector<double> one(2, 0.0);
+    one[t] = 1.0;
+    EXPECT_LE(MaxDistance(b.Evaluate(one), Solved(rig(), one)), 1e-9 * diagonal) << target.name;
+  }
+  EXPECT_LE(MaxDistance(b.Evaluate({1.0, 1.0}), Solved(rig(), {1.0, 1.0})), 1e-9 * diagonal);
+  EXPECT_LE(MaxDistance(b.Evaluate({0.0, 0.0}), rig()->rest().vertices), 0.0);
+}
+
+TEST_F(BakeTest, BeatsTheLinearBlendAtWeightsItNeverSaw) {
+  const BakedRig& b = baked();
+  const double diagonal = rig()->summary().bounding_box_diagonal;
+  // Off the 1/16 grid, inside [0, 1].
+  for (double alpha : {0.09, 0.23, 0.41, 0.58, 0.77, 0.95}) {
+    for (int t = 0; t < 2; ++t) {
+      std::vector<double> w(2, 0.0);
+      w[t] = alpha;
+      const Points solved = Solved(rig(), w);
+      const double baked_error = MaxDistance(b.Evaluate(w), solved) / diagonal;
+      const double linear_error = MaxDistance(LinearBlend(*rig(), w), solved) / diagonal;
+      EXPECT_LT(baked_error, linear_error) << b.targets[t].name << " at " << alpha;
+      // Within a few times what the bake measured on its own samples.
+      EXPECT_LE(baked_error, 4.0 * b.targets[t].max_error + 1e-6) << b.targets[t].name << " at " << alpha;
+    }
+  }
+  // A mix: the corrective carries the interaction.
+  const std::vector<double> mix = {0.7, 0.6};
+  const Points solved = Solved(rig(), mix);
+  EXPECT_LT(MaxDistance(b.Evaluate(mix), solved), MaxDistance(LinearBlend(*rig(), mix), solved));
+}
+
+TEST_F(BakeTest, ItsEvaluatorIsTheRigFileSemantics) {
+  // A rig built from the baked shapes (as `blend --rig OUT/rig.json --linear` builds it) blends as Evaluate does.
+  const BakedRig& b = baked();
+  const TriangleMesh& rest = rig()->rest();
+  std::vector<TargetSpec> specs;
+  const auto mesh = [&](const std::string& name, const Points& p) {
+    TriangleMesh m;
+    m.name = name;
+    m.vertices = p;
+    m.faces = rest.faces;
+    return m;
+  };
+  for (const BakedTarget& t : b.targets) {
+    TargetSpec spec;
+    spec.name = t.name;
+    spec.mesh = mesh(t.name, t.full);
+    for (const BakedShape& s : t.inbetweens) spec.inbetweens.push_back({s.weight, mesh(t.name, s.positions)});
+    specs.push_back(std::move(spec));
+  }
+  for (const BakedCombination& c : b.combinations) {
+    TargetSpec spec;
+    spec.name = c.name + "_baked";
+    spec.mesh = mesh(spec.name, c.shape);
+    for (int d : c.drivers) spec.combination.push_back(b.targets[d].name);
+    specs.push_back(std::move(spec));
+  }
+  RigOptions options;
+  options.target_paths = false;
+  options.interior = false;
+  options.shell = false;
+  options.anchor = false;
+  const auto plain = Rig::Build(rest, std::move(specs), options);
+  const double diagonal = rig()->summary().bounding_box_diagonal;
+  for (const std::vector<double>& w : std::vector<std::vector<double>>{
+           {0.3, 0.0}, {0.0, 0.8}, {0.45, 0.7}, {1.0, 1.0}, {1.2, -0.1}, {-0.2, 0.5}}) {
+    EXPECT_LE(MaxDistance(LinearBlend(*plain, w), b.Evaluate(w)), 1e-12 * diagonal) << w[0] << ", " << w[1];
+  }
+}
+
+TEST_F(BakeTest, MoreInbetweensNeverDoWorseAndATolerancePicksTheFewest) {
+  const BakeInput input = BakeInputOf(*rig());
+  const FrameSource frames = LocalFrameSource(rig());
+  double last = std::numeric_limits<double>::infinity();
+  for (int k : {0, 1, 3}) {
+    BakeOptions options;
+    options.samples = 8;
+    options.inbetweens = k;
+    options.pair_mode = BakePairs::kNone;
+    const BakedRig b = BakeRig(input, frames, options);
+    EXPECT_LE(b.summary.max_error, last) << k << " in-betweens";
+    last = b.summary.max_error;
+    // No in-between: the straight blend from the rest shape to the solved target.
+    if (k == 0) {
+      EXPECT_DOUBLE_EQ(b.summary.max_error, b.summary.linear_max_error);
+    }
+  }
+  BakeOptions loose;
+  loose.samples = 8;
+  loose.inbetweens = 7;
+  loose.tolerance = 0.5;  // half the diagonal: any path is within it
+  loose.pair_mode = BakePairs::kNone;
+  for (const BakedTarget& t : BakeRig(input, frames, loose).targets) EXPECT_TRUE(t.inbetweens.empty()) << t.name;
+}
+
+TEST_F(BakeTest, BadOptionsAndPairsAreRefusedByName) {
+  const BakeInput input = BakeInputOf(*rig());
+  const FrameSource frames = LocalFrameSource(rig());
+  BakeOptions options;
+  options.samples = 4;
+  options.inbetweens = 4;
+  EXPECT_THAT(CatchError([&] { BakeRig(input, frames, options); }).what(), HasSubstr("inbetweens = 4"));
+  options.inbetweens = 1;
+  options.pair_mode = BakePairs::kList;
+  options.pairs = {{"bend", "twirl"}};
+  const Error e = CatchError([&] { BakeRig(input, frames, options); });
+  EXPECT_EQ(e.code(), ErrorCode::kNotFound);
+  EXPECT_THAT(e.what(), HasSubstr("'twirl'"));
+  EXPECT_THAT(e.what(), HasSubstr("targets: bend, twist"));
+}
+
+}  // namespace
+}  // namespace springblend
