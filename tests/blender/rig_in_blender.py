@@ -53,6 +53,26 @@ def build_rig(config):
     return obj
 
 
+def import_baked(config):
+    """Imports the baked rig file with Import Rig File and saves what Blender shows for each of its weights (set
+    on the target sliders, the object's custom properties)."""
+    before = set(bpy.data.objects)
+    check(bpy.ops.springblend.import_rig(filepath=config["baked"]) == {"FINISHED"}, "import of the baked rig failed")
+    (obj,) = set(bpy.data.objects) - before
+    keys = [kb.name for kb in obj.data.shape_keys.key_blocks]
+    check(keys[0] == "Basis" and "bend*twist" in keys and any(k.startswith("bend@") for k in keys),
+          f"unexpected keys of the imported rig {keys}")
+    shown = []
+    for weights in config["baked_weights"]:
+        obj["bend"], obj["twist"] = weights
+        obj.update_tag()  # as the Properties editor tags an edited custom property
+        bpy.context.view_layer.update()
+        shown.append(shown_positions(obj))
+    np.save(config["baked_output"], np.stack(shown))
+    expect_error_report(lambda: bpy.ops.springblend.import_rig(filepath=config["baked"] + ".missing"),
+                        "springblend: " + config["baked"] + ".missing: cannot open")
+
+
 def main():
     config = json.loads(pathlib.Path(sys.argv[sys.argv.index("--") + 1]).read_text())
     install_addon(config["addon_zip"])
@@ -89,7 +109,8 @@ def main():
     check(bpy.ops.springblend.upload() == {"FINISHED"}, "upload with held vertices failed")
     pathlib.Path(config["result"]).write_text(json.dumps({"character": character,
                                                           "held_character": obj.springblend_character}))
-    print("rig_in_blender: exported, uploaded and baked", len(config["frames"]), "frames")
+    import_baked(config)
+    print("rig_in_blender: exported, uploaded and baked", len(config["frames"]), "frames; imported the baked rig")
 
 
 main()

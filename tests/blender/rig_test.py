@@ -18,6 +18,7 @@ import numpy as np
 sys.path.insert(0, str(pathlib.Path(__file__).parent))
 import blender_runner as runner  # noqa: E402
 from blender_runner import testing  # noqa: E402
+from springblend import rigfile  # noqa: E402
 
 FRAMES = [1, 2, 3]
 # bend, twist per frame: a mix, the in-between alone, both drivers at 1 (the combination's sculpt).
@@ -31,7 +32,20 @@ def main():
                   "rig": str(testing.CYLINDER / "rig.json"), "frames": FRAMES, "weights": WEIGHTS,
                   "export": os.path.join(directory, "exported", "cylinder.json"),
                   "output": os.path.join(directory, "baked.npy"), "result": os.path.join(directory, "result.json")}
+        # A rig baked by the CLI (in-betweens and the combination, from solved frames), imported with Import Rig
+        # File: its sliders play it without the server.
+        summary = json.loads(testing.cli("bake-rig", "--rig", str(testing.CYLINDER / "rig.json"), "--samples", "8",
+                                         "--inbetweens", "2", "--out", os.path.join(directory, "baked")))
+        inbetween = summary["targets"][0]["inbetweens"][0]
+        config.update({"baked": summary["rig"], "baked_output": os.path.join(directory, "baked_shown.npy"),
+                       "baked_weights": [[inbetween, 0.0], [1.0, 1.0], [0.3, 0.7], [1.2, -0.1], [0.9, 0.4]]})
         runner.run_blender("rig_in_blender.py", config, directory, server)
+        baked_shown = np.load(config["baked_output"])
+        baked_rig = rigfile.load_rig(summary["rig"])
+        played = np.stack([rigfile.linear_blend(baked_rig, w) for w in config["baked_weights"]])
+        runner.largest_error(baked_shown, played, "rig_test (the imported baked rig's sliders, against linear_blend)")
+        solved = testing.cli_blend_rig(str(testing.CYLINDER / "rig.json"), config["baked_weights"][:2], directory)
+        runner.largest_error(baked_shown[:2], solved, "rig_test (the imported baked rig at an in-between and at 1, 1)")
         baked = np.load(config["output"])
         with open(config["result"]) as text:
             character = json.load(text)["character"]

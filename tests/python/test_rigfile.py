@@ -104,6 +104,37 @@ class RigFileTest(unittest.TestCase):
             else:
                 np.testing.assert_array_equal(a.mask, b.mask)
 
+    def test_linear_blend_is_the_clis_linear_blendshape(self):
+        # In-betweens (bend at 0.25 lies before its 0.5 in-between), a mask (twist) and the combination.
+        rig = rigfile.load_rig(RIG)
+        with tempfile.TemporaryDirectory() as directory:
+            for i, w in enumerate([[0.25, 0.5], [0.75, 0.0], [1.0, 1.0], [1.3, -0.2]]):
+                out = os.path.join(directory, f"lin{i}.obj")
+                testing.cli("blend", "--rig", RIG, "--linear", "--weights", ",".join(map(str, w)), "--out", out)
+                expected = testing.load_obj(out)[0]
+                np.testing.assert_allclose(rigfile.linear_blend(rig, w), expected, rtol=0, atol=1e-5)
+            np.testing.assert_array_equal(rigfile.linear_blend(rig, {"twist": 0.5}), rigfile.linear_blend(rig, [0, 0.5]))
+        with self.assertRaises(springblend.SpringblendError) as caught:
+            rigfile.linear_blend(rig, {"twirl": 1.0})
+        self.assertIn("'twirl' is not a target of this rig (targets: bend, twist)", caught.exception.message)
+
+    def test_a_baked_rig_plays_back_the_solved_frames(self):
+        # springblend bake-rig keeps solved frames as in-betweens and correctives; played linearly they come back.
+        with tempfile.TemporaryDirectory() as directory:
+            summary = json.loads(testing.cli("bake-rig", "--rig", RIG, "--samples", "8", "--inbetweens", "2",
+                                             "--out", os.path.join(directory, "baked")))
+            baked = rigfile.load_rig(summary["rig"])
+            self.assertEqual(baked.weight_names, ["bend", "twist"])
+            at = summary["targets"][1]["inbetweens"][0]
+            frames = [[0.0, at], [1.0, 1.0], [0.4, 0.3]]
+            solved = testing.cli_blend_rig(RIG, frames, directory)
+            diagonal = testing.bounding_box_diagonal(baked.rest)
+            for frame, expected in zip(frames[:2], solved[:2]):
+                self.assertLess(np.abs(rigfile.linear_blend(baked, frame) - expected).max(), 1e-6 * diagonal)
+            plain = rigfile.linear_blend(rigfile.load_rig(RIG), frames[2])
+            self.assertLess(np.linalg.norm(rigfile.linear_blend(baked, frames[2]) - solved[2], axis=1).max(),
+                            np.linalg.norm(plain - solved[2], axis=1).max())
+
 
 class RigUploadTest(unittest.TestCase):
     @classmethod

@@ -8,7 +8,7 @@ import time
 
 import bpy
 
-from . import connection, jobs, live, scene_data, store
+from . import connection, jobs, live, rig_import, scene_data, store
 from .scene_data import UserError
 
 
@@ -151,6 +151,34 @@ class SPRINGBLEND_OT_export_rig(_Guarded, bpy.types.Operator):
         rig = _character_rig(obj)
         connection.client_module().rigfile.write_rig(path, rig)
         self.report({"INFO"}, f"springblend: wrote the rig of '{obj.name}' ({len(rig.targets)} targets) to {path}")
+        return {"FINISHED"}
+
+
+class SPRINGBLEND_OT_import_rig(_Guarded, bpy.types.Operator):
+    """Import a rig file (a baked one from springblend bake-rig, or any) as a mesh with shape keys that play without
+    the server: one slider per target, in-betweens and combination correctives driven by the sliders"""
+    bl_idname = "springblend.import_rig"
+    bl_label = "Import Rig File"
+    bl_options = {"REGISTER", "UNDO"}
+
+    filepath: bpy.props.StringProperty(subtype="FILE_PATH")
+    filter_glob: bpy.props.StringProperty(default="*.json", options={"HIDDEN"})
+
+    def invoke(self, context, event):
+        context.window_manager.fileselect_add(self)
+        return {"RUNNING_MODAL"}
+
+    def run(self, context):
+        if not self.filepath:
+            raise UserError("choose the rig file to import")
+        obj = rig_import.import_rig(context, bpy.path.abspath(self.filepath))
+        for other in context.selected_objects:
+            other.select_set(False)
+        obj.select_set(True)
+        context.view_layer.objects.active = obj
+        keys = len(obj.data.shape_keys.key_blocks) - 1
+        self.report({"INFO"}, f"springblend: imported '{obj.name}' ({len(obj.data.vertices)} vertices, {keys} shape "
+                              "keys driven by its target sliders in Object Properties > Custom Properties)")
         return {"FINISHED"}
 
 
@@ -330,5 +358,6 @@ class SPRINGBLEND_OT_live_report(bpy.types.Operator):
         return {"FINISHED"}
 
 
-CLASSES = [SPRINGBLEND_OT_check_server, SPRINGBLEND_OT_upload, SPRINGBLEND_OT_export_rig, SPRINGBLEND_OT_bake, SPRINGBLEND_OT_live_preview,
+CLASSES = [SPRINGBLEND_OT_check_server, SPRINGBLEND_OT_upload, SPRINGBLEND_OT_export_rig, SPRINGBLEND_OT_import_rig,
+           SPRINGBLEND_OT_bake, SPRINGBLEND_OT_live_preview,
            SPRINGBLEND_OT_live_report]

@@ -22,6 +22,7 @@ class SPRINGBLEND_PT_main(bpy.types.Panel):
         box = layout.box()
         if obj is None or obj.type != "MESH":
             box.label(text="Select the character's mesh", icon="INFO")
+            box.operator("springblend.import_rig", icon="IMPORT")
         else:
             keys = obj.data.shape_keys
             count = len(scene_data.target_blocks(keys)) if keys else 0
@@ -32,6 +33,7 @@ class SPRINGBLEND_PT_main(bpy.types.Panel):
             row = box.row(align=True)
             row.operator("springblend.upload", icon="EXPORT")
             row.operator("springblend.export_rig", text="", icon="FILE_TICK")
+            row.operator("springblend.import_rig", text="", icon="IMPORT")
             box.prop(obj, "springblend_hold_outer_rim")
 
         layout.prop(settings, "colliders")

@@ -257,3 +257,57 @@ def write_rig(path, rig):
     with open(path, "w") as out:
         json.dump(doc, out, indent=1)
     return path
+
+
+def linear_blend(rig, weights):
+    """The plain linear blendshape of a rig (#V by 3), as any blendshape evaluator with in-betweens and
+    combinations plays it, and as `springblend blend --rig RIG.json --linear` computes it: one weight per target
+    that is not a combination (rig.weight_names order), or a dict by name (the others 0). A target blends
+    piecewise linearly through its in-betweens (extrapolated with the first or last segment's slope outside
+    [0, 1]), its offsets scaled per vertex by its mask; a combination is on by the product of its drivers'
+    weights, less that product on each driver's full shape. A baked rig (`springblend bake-rig`) played this way
+    gives the solved frames at its in-betweens' weights and its combinations' driver settings."""
+    names = rig.weight_names
+    if isinstance(weights, dict):
+        unknown = [n for n in weights if n not in names]
+        if unknown:
+            raise invalid_argument(f"weights: '{unknown[0]}' is not a target of this rig (targets: {', '.join(names)})")
+        weights = [float(weights.get(n, 0.0)) for n in names]
+    weights = [float(w) for w in weights]
+    if len(weights) != len(names):
+        raise invalid_argument(f"weights: {len(weights)} given for a rig of {len(names)} targets")
+    if not all(math.isfinite(w) for w in weights):
+        raise invalid_argument("weights: every weight must be finite")
+    by_name = dict(zip(names, weights))
+    ordinary = {t.name: t for t in rig.targets if not t.combination}
+    rest = np.asarray(rig.rest, dtype=np.float64)
+    out = rest.copy()
+
+    def offset(target, positions):
+        delta = np.asarray(positions, dtype=np.float64) - rest
+        return delta if target.mask is None else delta * np.asarray(target.mask, dtype=np.float64)[:, None]
+
+    for target in ordinary.values():
+        w = by_name[target.name]
+        if w == 0.0:
+            continue
+        knots = sorted(target.inbetweens, key=lambda k: k[0]) + [(1.0, target.positions)]
+        i = 0
+        while i + 1 < len(knots) and w > knots[i][0]:
+            i += 1
+        a = 0.0 if i == 0 else knots[i - 1][0]
+        b = knots[i][0]
+        u = (w - a) / (b - a)
+        out += u * offset(target, knots[i][1])
+        if i > 0:
+            out += (1.0 - u) * offset(target, knots[i - 1][1])
+    for target in rig.targets:
+        if not target.combination:
+            continue
+        product = math.prod(by_name[d] for d in target.combination)
+        if product == 0.0:
+            continue
+        out += product * (np.asarray(target.positions, dtype=np.float64) - rest)
+        for d in target.combination:
+            out -= product * offset(ordinary[d], ordinary[d].positions)
+    return out
