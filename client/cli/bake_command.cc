@@ -285,8 +285,13 @@ Runner AddBakeCommand(CLI::App& app) {
                   fmt::format("server address host:port (default: ${}, else {})", kServerVariable, kDefaultServer));
   cmd->add_flag("--tls", connection.tls, "use TLS");
   cmd->add_option("--tls-ca", connection.tls_ca, "PEM CA bundle (implies --tls)");
+  cmd->add_option("--tls-cert", connection.tls_cert, "PEM client certificate, for servers requiring mutual TLS");
+  cmd->add_option("--tls-key", connection.tls_key, "PEM private key of --tls-cert");
+  cmd->add_option("--tls-server-name", connection.tls_server_name, "name the server's certificate must carry");
   cmd->add_option("--token", connection.token, "token sent as 'authorization: Bearer TOKEN'")
       ->envname("SPRINGBLEND_TOKEN");
+  cmd->add_option("--timeout", connection.timeout_seconds, "seconds each call may take (default: no limit)")
+      ->check(CLI::PositiveNumber);
   return [args] {
     try {
       return RunBake(*args);

@@ -52,7 +52,7 @@ Address ResolveAddress(const Connection& connection) {
 std::optional<std::chrono::milliseconds> CommandDeadline(const std::string& command, const Connection& connection) {
   double seconds = connection.timeout_seconds;
   if (seconds <= 0.0) {
-    if (command == "upload" || command == "solve") return std::nullopt;
+    if (command == "upload" || command == "solve" || command == "bake-rig") return std::nullopt;
     seconds = command == "health" ? kHealthSeconds : kQuickCallSeconds;
   }
   return std::chrono::milliseconds(static_cast<std::int64_t>(seconds * 1000.0 + 0.5));

@@ -33,9 +33,9 @@ struct Address {
 };
 Address ResolveAddress(const Connection& connection);
 
-// The deadline of each call a command makes: --timeout when given; otherwise none for upload and solve (they take as
-// long as the rig or the frames take: minutes for a face), and a few seconds for the quick calls, so a script never
-// hangs on a black-holed address.
+// The deadline of each call a command makes: --timeout when given; otherwise none for upload, solve and bake-rig
+// (they take as long as the rig or the frames take: minutes for a face), and a few seconds for the quick calls, so a
+// script never hangs on a black-holed address.
 std::optional<std::chrono::milliseconds> CommandDeadline(const std::string& command, const Connection& connection);
 
 // A channel to the resolved address with the TLS flags. Bad TLS flags (a file that is not PEM, --tls-cert without

@@ -12,6 +12,7 @@
 #include <chrono>
 #include <set>
 #include <map>
+#include <filesystem>
 #include <fstream>
 #include <thread>
 
@@ -313,6 +314,41 @@ TEST_F(CliRemoteTest, CharactersAreNamedByIdPrefixOrNameAndDescribed) {
   ASSERT_EQ(removed.exit_code, 0) << removed.stderr_text;
   EXPECT_EQ(removed.lines.at(0)["deleted"], id);
   EXPECT_EQ(RunCli("describe --character arm" + remote, dir_).lines.at(0)["id"], other.lines.at(0)["id"]);
+}
+
+// bake-rig against a server's character (frames solved there, its combination's drivers from the rig file) bakes
+// the rig the local bake does: the same in-betweens and correctives, the same shapes to float32.
+TEST_F(CliRemoteTest, ABakeOfAServersCharacterIsTheLocalBake) {
+  ServerProcess server(cache_.path().string());
+  ASSERT_FALSE(server.address().empty());
+  const std::string remote = " --server " + server.address() + " --timeout 120";
+  const std::string rig = DataPath("cylinder/rig.json");
+  const CliRun upload = RunCli("upload --rig " + rig + " --name bakeable" + remote, dir_);
+  ASSERT_EQ(upload.exit_code, 0) << upload.stderr_text;
+  const std::string options = " --samples 8 --inbetweens 2 --rig " + rig;
+  const CliRun there = RunCli("bake-rig --character bakeable" + options + " --out " + dir_.File("remote") + remote, dir_);
+  ASSERT_EQ(there.exit_code, 0) << there.stderr_text;
+  const CliRun here = RunCli("bake-rig" + options + " --out " + dir_.File("local"), dir_);
+  ASSERT_EQ(here.exit_code, 0) << here.stderr_text;
+  const nlohmann::json& a = there.lines.at(0);
+  const nlohmann::json& b = here.lines.at(0);
+  EXPECT_EQ(a["frames"], b["frames"]);
+  ASSERT_EQ(a["targets"].size(), 2u);
+  for (size_t t = 0; t < 2; ++t) EXPECT_EQ(a["targets"][t]["inbetweens"], b["targets"][t]["inbetweens"]) << t;
+  ASSERT_EQ(a["combinations"].size(), b["combinations"].size());
+  EXPECT_EQ(a["combinations"][0]["drivers"], nlohmann::json::array({"bend", "twist"}));
+  const double diagonal = BoundingBoxDiagonal(LoadMesh(DataPath("cylinder/cylinder.obj")).vertices);
+  for (const auto& entry : std::filesystem::directory_iterator(dir_.File("local"))) {
+    if (entry.path().extension() != ".obj") continue;
+    const std::string name = entry.path().filename().string();
+    EXPECT_LE(testing::MaxDistance(LoadMesh(entry.path().string()).vertices,
+                                   LoadMesh(dir_.File("remote/" + name)).vertices),
+              1e-6 * diagonal)
+        << name;
+  }
+  const CliRun unknown = RunCli("bake-rig --character nobody --out " + dir_.File("x") + remote, dir_);
+  EXPECT_EQ(unknown.exit_code, 2);
+  EXPECT_THAT(unknown.stderr_text, HasSubstr("--character 'nobody': no character on the server has this name"));
 }
 
 // --log-format json: every line the server writes is one JSON object, and every call leaves one access line
