@@ -171,4 +171,5 @@ def main():
     print(f"render_figure: wrote {args.out} ({os.path.getsize(args.out) // 1024} KB)")
 
 
-main()
+if __name__ == "__main__":  # docs/render_bake_figure.py imports the staging helpers
+    main()
