@@ -111,6 +111,7 @@ json RunRow(const RowSpec& spec, const Settings& settings) {
   row["frames_solved"] = baked.summary.frames;
   row["candidate_pairs"] = baked.summary.candidate_pairs;
   row["kept_pairs"] = baked.summary.kept_pairs;
+  row["refused_pairs"] = baked.summary.refused_pairs;
   row["combinations"] = baked.combinations.size();
   // As float32 positions, what a DCC or engine keeps per shape.
   row["size_mb"] = static_cast<double>(shapes) * rig->num_surface_vertices() * 3 * sizeof(float) / (1024.0 * 1024.0);

@@ -149,6 +149,7 @@ nlohmann::json SummaryJson(const BakedRig& baked, const std::string& dir) {
           {"unconverged_frames", s.unconverged_frames},
           {"candidate_pairs", s.candidate_pairs},
           {"kept_pairs", s.kept_pairs},
+          {"refused_pairs", s.refused_pairs},
           {"max_error", s.max_error},
           {"linear_max_error", s.linear_max_error},
           {"ms", s.ms}};

@@ -292,6 +292,20 @@ BakedRig BakeRig(const BakeInput& input, const FrameSource& frames, const BakeOp
                    [](const Candidate& a, const Candidate& b) { return a.drivers.size() < b.drivers.size(); });
   weights.clear();
   for (const Candidate& c : candidates) weights.push_back(unit(c.drivers));
+  // A pair found by the search must also pay inside its range: its frames with both at 1/2 and each at 1 with the
+  // other at 1/2 (a corrective is on by the product of the weights, while the solved mix need not grow that way).
+  constexpr double kChecks[3][2] = {{0.5, 0.5}, {1.0, 0.5}, {0.5, 1.0}};
+  std::vector<size_t> checks_of(candidates.size(), 0);
+  for (size_t c = 0; c < candidates.size(); ++c) {
+    if (candidates[c].forced) continue;
+    checks_of[c] = weights.size();
+    for (const auto& check : kChecks) {
+      std::vector<double> w(m, 0.0);
+      w[candidates[c].drivers[0]] = check[0];
+      w[candidates[c].drivers[1]] = check[1];
+      weights.push_back(std::move(w));
+    }
+  }
   std::vector<SolvedShape> mixes;
   if (!weights.empty()) solve(weights, &mixes);
   for (size_t c = 0; c < candidates.size(); ++c) {
@@ -299,7 +313,26 @@ BakedRig BakeRig(const BakeInput& input, const FrameSource& frames, const BakeOp
     const std::vector<double> w = unit(candidate.drivers);
     const Points without = baked.Evaluate(w);
     const double error = Distance(mixes[c].positions, without) / input.diagonal;
-    if (!candidate.forced && error <= options.pair_threshold) continue;
+    if (!candidate.forced) {
+      if (error <= options.pair_threshold) continue;
+      // With the corrective, a frame gains w_a w_b times what it corrects at (1, 1); kept where that lowers the
+      // error summed over the four frames.
+      const Points correction = mixes[c].positions - without;
+      double before = error, after = 0.0;
+      for (size_t k = 0; k < 3; ++k) {
+        std::vector<double> at(m, 0.0);
+        at[candidate.drivers[0]] = kChecks[k][0];
+        at[candidate.drivers[1]] = kChecks[k][1];
+        const Points base = baked.Evaluate(at);
+        const Points& check = mixes[checks_of[c] + k].positions;
+        before += Distance(check, base) / input.diagonal;
+        after += Distance(check, base + kChecks[k][0] * kChecks[k][1] * correction) / input.diagonal;
+      }
+      if (!(after < before)) {
+        ++summary.refused_pairs;
+        continue;
+      }
+    }
     BakedCombination combination;
     combination.name = candidate.name;
     combination.drivers = candidate.drivers;

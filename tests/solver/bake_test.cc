@@ -174,6 +174,46 @@ TEST_F(BakeTest, MoreInbetweensNeverDoWorseAndATolerancePicksTheFewest) {
   for (const BakedTarget& t : BakeRig(input, frames, loose).targets) EXPECT_TRUE(t.inbetweens.empty()) << t.name;
 }
 
+TEST_F(BakeTest, APairFoundByTheSearchIsKeptOnlyWhereItPaysAndThenReproducesItsMix) {
+  // The same cylinder without its combination: bend and twist move a common region, so their pair is a candidate.
+  std::vector<TriangleMesh> targets = {LoadMesh(DataPath("cylinder/poses-2_cylinder-2.obj")),
+                                       LoadMesh(DataPath("cylinder/poses-2_cylinder-3.obj"))};
+  const auto plain = Rig::Build(LoadMesh(DataPath("cylinder/cylinder.obj")), std::move(targets),
+                                testing::TestRigOptions());
+  BakeOptions options;
+  options.samples = 8;
+  options.inbetweens = 2;
+  const BakedRig b = BakeRig(BakeInputOf(*plain), LocalFrameSource(plain), options);
+  EXPECT_EQ(b.summary.candidate_pairs, 1);
+  EXPECT_EQ(b.summary.kept_pairs + b.summary.refused_pairs, 1);
+  const double diagonal = plain->summary().bounding_box_diagonal;
+  const Points mix = Solved(plain, {1.0, 1.0});
+  const Points half = Solved(plain, {0.5, 0.5});
+  BakeOptions none = options;
+  none.pair_mode = BakePairs::kNone;
+  const BakedRig without = BakeRig(BakeInputOf(*plain), LocalFrameSource(plain), none);
+  if (b.summary.kept_pairs == 1) {
+    ASSERT_EQ(b.combinations.size(), 1u);
+    EXPECT_FALSE(b.combinations[0].from_rig);
+    EXPECT_GT(b.combinations[0].error_without, options.pair_threshold);
+    EXPECT_LE(MaxDistance(b.Evaluate({1.0, 1.0}), mix), 1e-9 * diagonal);
+  } else {
+    EXPECT_TRUE(b.combinations.empty());
+  }
+  // Kept or not, the baked rig is no worse than without the search where the rule looked.
+  EXPECT_LE(MaxDistance(b.Evaluate({1.0, 1.0}), mix) + MaxDistance(b.Evaluate({0.5, 0.5}), half),
+            MaxDistance(without.Evaluate({1.0, 1.0}), mix) + MaxDistance(without.Evaluate({0.5, 0.5}), half) +
+                1e-12 * diagonal);
+  // Listed pairs are kept whatever their error.
+  BakeOptions listed = options;
+  listed.pair_mode = BakePairs::kList;
+  listed.pairs = {{plain->target_names()[1], plain->target_names()[0]}};
+  const BakedRig l = BakeRig(BakeInputOf(*plain), LocalFrameSource(plain), listed);
+  ASSERT_EQ(l.combinations.size(), 1u);
+  EXPECT_EQ(l.combinations[0].drivers, (std::vector<int>{0, 1}));
+  EXPECT_LE(MaxDistance(l.Evaluate({1.0, 1.0}), mix), 1e-9 * diagonal);
+}
+
 TEST_F(BakeTest, BadOptionsAndPairsAreRefusedByName) {
   const BakeInput input = BakeInputOf(*rig());
   const FrameSource frames = LocalFrameSource(rig());

@@ -48,7 +48,8 @@ struct BakeOptions {
   BakePairs pair_mode = BakePairs::kAuto;
   std::vector<std::pair<std::string, std::string>> pairs;  // kList: target names
   // kAuto: a pair gets a corrective when its solved mix (both at 1) is farther than this (of the diagonal)
-  // from what the baked rig gives there without it. Range (0, 1).
+  // from what the baked rig gives there without it, and the corrective lowers the baked rig's error summed over
+  // the pair's frames at (1, 1), (1/2, 1/2), (1, 1/2) and (1/2, 1). Range (0, 1).
   double pair_threshold = 1e-3;
   // kAuto: two targets move a common region when some vertex moves by more than region_fraction of each
   // target's largest move in both. Range (0, 1).
@@ -95,6 +96,7 @@ struct BakeSummary {
   int unconverged_frames = 0;
   int candidate_pairs = 0;  // kAuto: pairs that move a common region (their mixes were solved)
   int kept_pairs = 0;
+  int refused_pairs = 0;  // kAuto: beyond the threshold at (1, 1), but the corrective did not pay inside the range
   double max_error = 0.0;  // over every target's path samples, of the diagonal
   double linear_max_error = 0.0;
   double ms = 0.0;
