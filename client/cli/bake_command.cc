@@ -121,7 +121,8 @@ BakeOptions OptionsOf(const BakeArgs& args) {
     }
   }
   options.progress = [](const std::string& stage, int done, int total) {
-    std::cerr << fmt::format("springblend bake-rig: {} done ({}/{})", stage, done, total) << std::endl;
+    std::cerr << fmt::format("springblend bake-rig: {} {}/{}", stage == "paths" ? "target paths" : stage, done, total)
+              << std::endl;
   };
   return options;
 }
@@ -169,7 +170,9 @@ FrameSource RemoteFrames(std::shared_ptr<Client> client, std::string id) {
     int received = 0;
     try {
       client->Solve(request, [&](const v1::SolvedFrame& frame) {
-        if (frame.index() >= weights.size()) throw ClientError(grpc::StatusCode::INTERNAL, "a frame index out of range");
+        if (frame.index() >= weights.size()) {
+          throw ClientError(grpc::StatusCode::INTERNAL, "the server answered a frame index out of range");
+        }
         SolvedShape& shape = (*out)[frame.index()];
         shape.positions = Client::Decode(frame.positions());
         shape.converged = frame.summary().converged();

@@ -25,11 +25,12 @@ double Distance(const Points& a, const Points& b) { return std::sqrt((a - b).row
 // count, among the samples (dynamic programming over the samples: err[i][j] is the largest error of the straight
 // segment from sample i to sample j at the samples between them). Returns the interior sample indices, ascending,
 // and the error.
-std::pair<std::vector<int>, double> ChooseInbetweens(const std::vector<Points>& shapes, const std::vector<double>& alphas,
-                                                     int count, double tolerance, double diagonal) {
+std::pair<std::vector<int>, double> ChooseInbetweens(const std::vector<Points>& shapes,
+                                                     const std::vector<double>& alphas, int count, double tolerance,
+                                                     double diagonal) {
   const int n = static_cast<int>(shapes.size()) - 1;  // segments of the finest path
   std::vector<std::vector<double>> err(n + 1, std::vector<double>(n + 1, 0.0));
-  for (int i = 0; i <= n; ++i) {
+  tbb::parallel_for(0, n + 1, [&](int i) {
     for (int j = i + 2; j <= n; ++j) {
       double e = 0.0;
       for (int k = i + 1; k < j; ++k) {
@@ -38,7 +39,7 @@ std::pair<std::vector<int>, double> ChooseInbetweens(const std::vector<Points>& 
       }
       err[i][j] = e / diagonal;
     }
-  }
+  });
   count = std::min(count, n - 1);
   const double inf = std::numeric_limits<double>::infinity();
   // best[k][j]: the least largest error of a path from sample 0 to sample j through k chosen samples.
@@ -190,43 +191,42 @@ BakedRig BakeRig(const BakeInput& input, const FrameSource& frames, const BakeOp
     return w;
   };
 
-  // 1. Every target's path at samples + 1 weights in [0, 1] (the rest shape at 0 is the rig's own).
+  // 1. Each target's path at samples + 1 weights in [0, 1] (the rest shape at 0 is the rig's own), one target at
+  // a time (a production face's samples of every target at once would be hundreds of MB), and 2. its in-betweens.
   const int n = options.samples;
   std::vector<double> alphas(n + 1);
   for (int j = 0; j <= n; ++j) alphas[j] = static_cast<double>(j) / n;
-  std::vector<std::vector<double>> weights;
+  baked.targets.resize(m);
   for (int t = 0; t < m; ++t) {
+    std::vector<std::vector<double>> weights;
     for (int j = 1; j <= n; ++j) {
       std::vector<double> w(m, 0.0);
       w[t] = alphas[j];
       weights.push_back(std::move(w));
     }
-  }
-  std::vector<SolvedShape> solved;
-  solve(weights, &solved);
-  if (options.progress) options.progress("paths", m, m);
-
-  // 2. In-betweens per target, in parallel over the targets (each choice is a function of its own samples).
-  baked.targets.resize(m);
-  tbb::parallel_for(0, m, [&](int t) {
+    std::vector<SolvedShape> solved;
+    solve(weights, &solved);
     std::vector<Points> shapes(n + 1);
     shapes[0] = input.rest;
-    for (int j = 1; j <= n; ++j) shapes[j] = solved[static_cast<size_t>(t) * n + j - 1].positions;
-    const auto [chosen, error] = ChooseInbetweens(shapes, alphas, options.inbetweens, options.tolerance, input.diagonal);
+    for (int j = 1; j <= n; ++j) shapes[j] = std::move(solved[j - 1].positions);
+    const auto [chosen, error] =
+        ChooseInbetweens(shapes, alphas, options.inbetweens, options.tolerance, input.diagonal);
     BakedTarget& target = baked.targets[t];
     target.name = input.target_names[t];
     for (int k : chosen) target.inbetweens.push_back({alphas[k], shapes[k]});
     target.full = shapes[n];
     target.max_error = error;
     double linear = 0.0;
-    for (int j = 1; j < n; ++j) linear = std::max(linear, Distance(shapes[j], (1.0 - alphas[j]) * shapes[0] + alphas[j] * shapes[n]));
+    for (int j = 1; j < n; ++j) {
+      linear = std::max(linear, Distance(shapes[j], (1.0 - alphas[j]) * shapes[0] + alphas[j] * shapes[n]));
+    }
     target.linear_error = linear / input.diagonal;
-  });
+    if (options.progress) options.progress("paths", t + 1, m);
+  }
   for (const BakedTarget& t : baked.targets) {
     summary.max_error = std::max(summary.max_error, t.max_error);
     summary.linear_max_error = std::max(summary.linear_max_error, t.linear_error);
   }
-  if (options.progress) options.progress("inbetweens", m, m);
 
   // 3. Combinations: the rig's own, and the pairs asked for or found. A pair is a candidate where the two
   // targets move a common region; it is kept where its solved mix is farther than the threshold from the baked
@@ -259,7 +259,9 @@ BakedRig BakeRig(const BakeInput& input, const FrameSource& frames, const BakeOp
   if (options.pair_mode == BakePairs::kList) {
     for (const auto& [a, b] : options.pairs) {
       std::vector<int> drivers = {index_of(a), index_of(b)};
-      if (drivers[0] == drivers[1]) throw Error(ErrorCode::kInvalidInput, fmt::format("pair '{}*{}' names one target twice", a, b));
+      if (drivers[0] == drivers[1]) {
+        throw Error(ErrorCode::kInvalidInput, fmt::format("pair '{}*{}' names one target twice", a, b));
+      }
       std::sort(drivers.begin(), drivers.end());
       if (!taken.insert(drivers).second) continue;
       candidates.push_back({a + "_" + b, drivers, false, true});
@@ -290,7 +292,7 @@ BakedRig BakeRig(const BakeInput& input, const FrameSource& frames, const BakeOp
   // the smaller ones among its drivers (each is then reproduced exactly with its drivers at 1).
   std::stable_sort(candidates.begin(), candidates.end(),
                    [](const Candidate& a, const Candidate& b) { return a.drivers.size() < b.drivers.size(); });
-  weights.clear();
+  std::vector<std::vector<double>> weights;
   for (const Candidate& c : candidates) weights.push_back(unit(c.drivers));
   // A pair found by the search must also pay inside its range: its frames with both at 1/2 and each at 1 with the
   // other at 1/2 (a corrective is on by the product of the weights, while the solved mix need not grow that way).
@@ -344,7 +346,8 @@ BakedRig BakeRig(const BakeInput& input, const FrameSource& frames, const BakeOp
     baked.combinations.push_back(std::move(combination));
     if (!candidate.from_rig) ++summary.kept_pairs;
   }
-  if (options.progress) options.progress("combinations", static_cast<int>(candidates.size()), static_cast<int>(candidates.size()));
+  const int considered = static_cast<int>(candidates.size());
+  if (options.progress) options.progress("combinations", considered, considered);
   summary.ms = Elapsed(start);
   return baked;
 }

@@ -326,7 +326,8 @@ TEST_F(CliRemoteTest, ABakeOfAServersCharacterIsTheLocalBake) {
   const CliRun upload = RunCli("upload --rig " + rig + " --name bakeable" + remote, dir_);
   ASSERT_EQ(upload.exit_code, 0) << upload.stderr_text;
   const std::string options = " --samples 8 --inbetweens 2 --rig " + rig;
-  const CliRun there = RunCli("bake-rig --character bakeable" + options + " --out " + dir_.File("remote") + remote, dir_);
+  const CliRun there =
+      RunCli("bake-rig --character bakeable" + options + " --out " + dir_.File("remote") + remote, dir_);
   ASSERT_EQ(there.exit_code, 0) << there.stderr_text;
   const CliRun here = RunCli("bake-rig" + options + " --out " + dir_.File("local"), dir_);
   ASSERT_EQ(here.exit_code, 0) << here.stderr_text;

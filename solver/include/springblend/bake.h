@@ -54,7 +54,7 @@ struct BakeOptions {
   // kAuto: two targets move a common region when some vertex moves by more than region_fraction of each
   // target's largest move in both. Range (0, 1).
   double region_fraction = 0.01;
-  // Called after each stage with what is done (on the calling thread).
+  // Called with what is done ("paths" after each target, then "combinations"), on the calling thread.
   std::function<void(const std::string& stage, int done, int total)> progress;
   void Validate() const;  // throws Error(kInvalidInput) naming the field
 };
