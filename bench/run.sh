@@ -3,7 +3,8 @@
 # springblend-bench (every row whose meshes are present; per row the three solve methods side by side and the
 # direct-Newton baseline on the same frames), a perf profile of the face's solve (bench/profile.sh), the slider
 # drag through a server (bench/slider.py) and the service throughput script, and writes
-# bench-results/{bench.md,bench.json,ms_per_step.png,paths.md,paths.json,profile.md,slider.md,slider.json,service.md}.
+# bench-results/{bench.md,bench.json,ms_per_step.png,paths.md,paths.json,bake.md,bake.json,profile.md,slider.md,
+# slider.json,service.md}.
 #   bash bench/run.sh [springblend-bench options, e.g. --rows face,horse --steps 36 --shared DIR]
 # Without --steps (or --quick) the sweep has 18 frames (17 solved per pass), so that the whole run, every row
 # with all three methods, the baseline and the reference, takes about 40 minutes on two cores (37 measured).
@@ -12,8 +13,8 @@ cd "$(dirname "$0")/.."
 bash deploy/install-deps.sh
 cmake -S . -B build/bench -G Ninja -DCMAKE_BUILD_TYPE=Release -DSPRINGBLEND_BUILD_BENCH=ON \
   -DSPRINGBLEND_BUILD_TESTS=OFF > /dev/null
-cmake --build build/bench --target springblend-bench springblend-paths-bench springblend springblend-server springblend-tetgen \
-  springblend_python -j "$(nproc)"
+cmake --build build/bench --target springblend-bench springblend-paths-bench springblend-bake-bench springblend \
+  springblend-server springblend-tetgen springblend_python -j "$(nproc)"
 # The profile and the slider drag read the shared meshes from the same place as springblend-bench.
 shared="$(cd .. && pwd)/shared/meshes"
 defaults=(--steps 18)
@@ -30,6 +31,8 @@ build/bench/bench/springblend-bench --out bench-results "${defaults[@]}" "$@" ||
 # The target paths: build time and samples per target, path frames (17 off-sample alphas per target) against the
 # full solve from the same start and a 1e-12 reference, memory, and a restart from the saved paths.
 build/bench/bench/springblend-paths-bench --out bench-results --shared "$shared" || status=$?
+# Baked plain rigs (bake-rig) against solved frames: single targets at held-out weights, pairs, five-target mixes.
+build/bench/bench/springblend-bake-bench --out bench-results --shared "$shared" || status=$?
 bash bench/profile.sh build/bench bench-results face 12 newton "$shared" || status=$?
 /usr/bin/python3 bench/slider.py --build build/bench --out bench-results --shared "$shared" || status=$?
 bash bench/service.sh build/bench bench-results

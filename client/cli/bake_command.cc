@@ -229,22 +229,8 @@ int RunBake(const BakeArgs& args) {
     RigOptions rig_options;
     rig_options.fixed_vertices = args.fixed;
     rig_options.hold_outer_rim = args.hold_outer_rim;
-    std::shared_ptr<const Rig> rig;
-    if (!args.rig.empty()) {
-      if (!args.rest.empty() || !args.targets.empty()) {
-        throw Error(ErrorCode::kInvalidInput, "--rig names the rest shape and the targets; drop --rest and --target");
-      }
-      rig = BuildRig(LoadRigFile(args.rig), rig_options);
-    } else {
-      if (args.rest.empty() || args.targets.empty()) {
-        throw Error(ErrorCode::kInvalidInput,
-                    "give --rig RIG.json, or --rest and at least one --target, or --server and --character");
-      }
-      TriangleMesh rest = LoadMesh(args.rest);
-      std::vector<TriangleMesh> targets;
-      for (const auto& path : args.targets) targets.push_back(LoadMesh(path));
-      rig = Rig::Build(std::move(rest), std::move(targets), rig_options);
-    }
+    const std::shared_ptr<const Rig> rig =
+        BuildRigFromFlags(args.rig, args.rest, args.targets, rig_options, ", or --server and --character");
     input = BakeInputOf(*rig);
     faces = rig->rest().faces;
     frames = LocalFrameSource(rig);

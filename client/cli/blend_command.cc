@@ -119,21 +119,7 @@ int RunBlend(const BlendArgs& args) {
     rig_options.anchor = false;
   }
 
-  std::shared_ptr<const Rig> rig;
-  if (!args.rig.empty()) {
-    if (!args.rest.empty() || !args.targets.empty()) {
-      throw Error(ErrorCode::kInvalidInput, "--rig names the rest shape and the targets; drop --rest and --target");
-    }
-    rig = BuildRig(LoadRigFile(args.rig), rig_options);
-  } else {
-    if (args.rest.empty() || args.targets.empty()) {
-      throw Error(ErrorCode::kInvalidInput, "give --rest and at least one --target, or --rig RIG.json");
-    }
-    TriangleMesh rest = LoadMesh(args.rest);
-    std::vector<TriangleMesh> targets;
-    for (const auto& path : args.targets) targets.push_back(LoadMesh(path));
-    rig = Rig::Build(std::move(rest), std::move(targets), rig_options);
-  }
+  const std::shared_ptr<const Rig> rig = BuildRigFromFlags(args.rig, args.rest, args.targets, rig_options);
   if (args.verbose) std::cerr << RigJson(rig->summary()).dump() << "\n";
 
   SolveOptions options;

@@ -212,4 +212,21 @@ std::shared_ptr<const Rig> BuildRig(RigFile file, RigOptions options) {
   }
 }
 
+std::shared_ptr<const Rig> BuildRigFromFlags(const std::string& rig, const std::string& rest,
+                                             const std::vector<std::string>& targets, const RigOptions& options,
+                                             const std::string& otherwise) {
+  if (!rig.empty()) {
+    if (!rest.empty() || !targets.empty()) {
+      throw Error(ErrorCode::kInvalidInput, "--rig names the rest shape and the targets; drop --rest and --target");
+    }
+    return BuildRig(LoadRigFile(rig), options);
+  }
+  if (rest.empty() || targets.empty()) {
+    throw Error(ErrorCode::kInvalidInput, "give --rest and at least one --target, or --rig RIG.json" + otherwise);
+  }
+  std::vector<TriangleMesh> meshes;
+  for (const auto& path : targets) meshes.push_back(LoadMesh(path));
+  return Rig::Build(LoadMesh(rest), std::move(meshes), options);
+}
+
 }  // namespace springblend::cli

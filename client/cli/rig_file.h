@@ -30,6 +30,12 @@ RigFile LoadRigFile(const std::string& path);
 // inbetweens[1].weight ...") get the rig file's path in front.
 std::shared_ptr<const Rig> BuildRig(RigFile file, RigOptions options);
 
+// The rig a local command's flags name: --rig RIG.json, or --rest REST with --target T...; refuses both or neither
+// (`otherwise` ends that message with what else the command takes, e.g. ", or --server and --character").
+std::shared_ptr<const Rig> BuildRigFromFlags(const std::string& rig, const std::string& rest,
+                                             const std::vector<std::string>& targets, const RigOptions& options,
+                                             const std::string& otherwise = "");
+
 // A mask text file: one number per line (blank lines and lines starting with # are skipped). Throws naming
 // `source` and the line.
 std::vector<double> ParseMaskText(const std::string& text, const std::string& source);
