@@ -32,6 +32,7 @@ struct BlendArgs {
   CacheTiming timing;
   int sweep = 0;
   bool linear = false;
+  bool certify = false;
   std::vector<int> fixed;
   double static_tolerance = RigOptions{}.static_tolerance;
   bool no_bending = false;
@@ -97,6 +98,7 @@ nlohmann::json FrameJson(const Rig& rig, const SolveSummary& s, int frame, const
           {"inverted_tetrahedra", s.inverted_tetrahedra},
           {"factorize_ms", s.factorize_ms},
           {"line_search_halvings", s.line_search_halvings},
+          {"minimum", ToString(s.minimum)},
           {"solve_ms", s.solve_ms}};
 }
 
@@ -127,6 +129,7 @@ int RunBlend(const BlendArgs& args) {
   options.max_iterations = args.max_iterations;
   options.use_target_paths = !args.no_target_paths;
   options.linear = args.linear;
+  options.certify_minimum = args.certify;
   options.method = SolveMethodFromString(args.method);
   if (args.hessian == "projected") {
     options.hessian = HessianMode::kProjected;
@@ -216,6 +219,9 @@ Runner AddBlendCommand(CLI::App& app) {
                   "OUT/frame_0000.obj ...")
       ->check(CLI::Range(1, 100000));
   cmd->add_flag("--linear", args->linear, "output the plain linear blendshape instead (for comparison)");
+  cmd->add_flag("--certify", args->certify,
+                "check that each converged answer is a local minimum (one factorization of the true Hessian): the "
+                "frame's JSON line says \"minimum\": \"minimum\" or \"not a minimum\"");
   cmd->add_option("--fixed", args->fixed, "vertex indices (0-based) held as boundary conditions")
       ->delimiter(',');
   cmd->add_option("--static-tolerance", args->static_tolerance,

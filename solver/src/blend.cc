@@ -20,6 +20,15 @@ const char* ToString(HessianMode mode) {
   return "unknown";
 }
 
+const char* ToString(MinimumCheck check) {
+  switch (check) {
+    case MinimumCheck::kNotChecked: return "not checked";
+    case MinimumCheck::kMinimum: return "minimum";
+    case MinimumCheck::kNotMinimum: return "not a minimum";
+  }
+  return "unknown";
+}
+
 const char* ToString(Finish finish) {
   switch (finish) {
     case Finish::kFull: return "full";

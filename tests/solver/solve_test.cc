@@ -7,6 +7,7 @@
 
 #include <malloc.h>
 
+#include <algorithm>
 #include <cmath>
 #include <thread>
 
@@ -165,6 +166,76 @@ TEST(Blend, ProjectedNewtonReachesTheSameEquilibrium) {
   ASSERT_TRUE(without.converged()) << without.message;
   EXPECT_EQ(without.projected_factorizations, without.factorizations);
   EXPECT_LE(MaxDistance(a, b), kShapeTolerance * Diagonal(*rig));
+}
+
+// SolveOptions::certify_minimum. One surface vertex of the cylinder is left free and every other vertex pinned:
+// its spring neighbours at an equal share of their rest lengths, two along +z and -z and the others evenly spread
+// on a circle around it in the xy-plane, so its start is in balance (0 Newton iterations). Compressed to half their
+// length, the circle's springs make z a direction of negative curvature (a compressed spring's transverse
+// stiffness is negative) that the z springs do not outweigh: the buckling saddle, though the projected Hessian
+// (curvature clamped at zero) is positive definite there, so only the true Hessian tells. Stretched to twice their
+// length, a strict minimum. Converged frames of a rig are minima.
+TEST(Blend, TheCertificateTellsAMinimumFromASaddle) {
+  RigOptions options;
+  options.interior = false;
+  options.shell = false;
+  options.anchor = false;
+  options.static_tolerance = -1.0;
+  options.target_paths = false;
+  auto rig = LoadRig("cylinder/cylinder.obj", {"cylinder/poses-2_cylinder-1.obj"}, options);
+  const int free_vertex = 210;
+  const Points& rest = rig->rest().vertices;
+  std::vector<int> neighbours;
+  std::vector<double> lengths;
+  for (int k = rig->vertex_spring_offsets()[free_vertex]; k < rig->vertex_spring_offsets()[free_vertex + 1]; ++k) {
+    const int q = rig->vertex_springs()[k];
+    neighbours.push_back(rig->spring_a()[q] == free_vertex ? rig->spring_b()[q] : rig->spring_a()[q]);
+    lengths.push_back(rig->rest_lengths()[q]);
+  }
+  ASSERT_GE(neighbours.size(), 4u);
+  const auto frame_at = [&](double stretch) {
+    Frame frame;
+    frame.weights = {0.0};
+    for (int v = 0; v < rig->num_vertices(); ++v) {
+      if (v == free_vertex) continue;
+      Eigen::Vector3d at = rest.row(v).transpose();
+      const auto it = std::find(neighbours.begin(), neighbours.end(), v);
+      if (it != neighbours.end()) {
+        const size_t j = static_cast<size_t>(it - neighbours.begin());
+        Eigen::Vector3d direction = Eigen::Vector3d::UnitZ() * (j == 0 ? 1.0 : -1.0);
+        if (j >= 2) {
+          const double angle = 2.0 * M_PI * static_cast<double>(j - 2) / static_cast<double>(neighbours.size() - 2);
+          direction = Eigen::Vector3d(std::cos(angle), std::sin(angle), 0.0);
+        }
+        at = rest.row(free_vertex).transpose() + stretch * lengths[j] * direction;
+      }
+      frame.pins.push_back({v, at});
+    }
+    return frame;
+  };
+  SolveOptions certify;
+  certify.certify_minimum = true;
+  certify.use_target_paths = false;
+  Solver solver(rig, certify);
+  Points x;
+  const SolveSummary saddle = solver.Solve(frame_at(0.5), &x);
+  ASSERT_TRUE(saddle.converged()) << saddle.message;
+  EXPECT_EQ(saddle.newton_iterations, 0);
+  EXPECT_EQ(saddle.minimum, MinimumCheck::kNotMinimum);
+  const SolveSummary stretched = solver.Solve(frame_at(2.0), &x);
+  ASSERT_TRUE(stretched.converged()) << stretched.message;
+  EXPECT_EQ(stretched.newton_iterations, 0);
+  EXPECT_EQ(stretched.minimum, MinimumCheck::kMinimum);
+  // Real frames of a rig (its own options, paths and all), and the default: not checked.
+  auto full = LoadRig("cylinder/cylinder.obj", {"cylinder/poses-2_cylinder-1.obj"});
+  Solver certified(full, certify);
+  for (double w : {0.3, 0.7, 1.0}) {
+    const SolveSummary s = certified.Solve({{w}}, &x);
+    ASSERT_TRUE(s.converged()) << s.message;
+    EXPECT_EQ(s.minimum, MinimumCheck::kMinimum) << w;
+    EXPECT_GT(s.certify_ms, 0.0);
+  }
+  EXPECT_EQ(Solver(full).Solve({{0.7}}, &x).minimum, MinimumCheck::kNotChecked);
 }
 
 TEST(Blend, FixedVerticesMoveWithTheLinearBlend) {

@@ -112,9 +112,21 @@ struct SolveOptions {
   // The solution of a frame is the equilibrium; with `linear` the solver returns the plain linear
   // blendshape instead (for comparison) and does no Newton iteration.
   bool linear = false;
+  // Certify a converged frame's answer as a local minimum: one Cholesky factorization of the true Hessian on
+  // the free coordinates at the answer (SolveSummary::minimum). Where a frame has several equilibria, an answer
+  // is right when it is a minimum, whichever one; this says so per frame. Costs about one factorization.
+  bool certify_minimum = false;
 
   void Validate() const;  // throws Error(kInvalidInput) naming the field
 };
+
+// Whether a frame's answer is a local minimum of the energy (SolveOptions::certify_minimum).
+enum class MinimumCheck {
+  kNotChecked,  // not asked, or the frame did not converge
+  kMinimum,     // the true Hessian on the free coordinates is positive definite there: a strict local minimum
+  kNotMinimum,  // it is not: a saddle or a flat direction of the energy, not an answer to keep
+};
+const char* ToString(MinimumCheck check);
 
 // How a frame was finished.
 enum class Finish {
@@ -155,6 +167,8 @@ struct SolveSummary {
   int lbfgs_iterations = 0;  // kLbfgs: its own iterations (newton_iterations counts them too)
   int newton_fallbacks = 0;  // kLbfgs: 1 when Newton finished the frame
   Finish finish = Finish::kFull;
+  MinimumCheck minimum = MinimumCheck::kNotChecked;
+  double certify_ms = 0.0;  // the certificate's factorization (part of solve_ms)
   int solved_vertices = 0;  // vertices Newton moved: the local region, or every free vertex
   int free_vertices = 0;    // vertices with a free coordinate in this frame
   std::string local_finish_note;  // why a local finish gave up (then the frame was solved in full)
