@@ -181,6 +181,10 @@ FrameSource RemoteFrames(std::shared_ptr<Client> client, std::string id) {
     } catch (const ClientError& e) {
       throw CallError("solve", e, fmt::format("{} of {} frames arrived", received, weights.size()));
     }
+    if (received != static_cast<int>(weights.size())) {
+      throw CallError("solve", ClientError(grpc::StatusCode::INTERNAL, "the stream ended early"),
+                      fmt::format("{} of {} frames arrived", received, weights.size()));
+    }
   };
 }
 
@@ -191,6 +195,11 @@ int RunBake(const BakeArgs& args) {
   Faces faces;
   FrameSource frames;
   if (!args.character.empty()) {
+    if (!args.rest.empty() || !args.targets.empty()) {
+      throw Error(ErrorCode::kInvalidInput,
+                  "--character bakes a server's character, whose meshes are on the server: drop --rest and --target "
+                  "(--rig only says which of its targets are combinations of which)");
+    }
     // The character lives on a server: its target names, faces and rest shape (the frame with every weight 0)
     // come from there; a rig file, when given, says which of its targets are combinations of which.
     auto client = std::make_shared<Client>(OpenChannel(args.connection), CallOptions("bake-rig", args.connection));

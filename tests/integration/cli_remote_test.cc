@@ -347,6 +347,11 @@ TEST_F(CliRemoteTest, ABakeOfAServersCharacterIsTheLocalBake) {
               1e-6 * diagonal)
         << name;
   }
+  const CliRun both = RunCli("bake-rig --character bakeable --rest " + DataPath("cylinder/cylinder.obj") + " --out " +
+                                 dir_.File("x") + remote,
+                             dir_);
+  EXPECT_EQ(both.exit_code, 2);
+  EXPECT_THAT(both.stderr_text, HasSubstr("drop --rest and --target"));
   const CliRun unknown = RunCli("bake-rig --character nobody --out " + dir_.File("x") + remote, dir_);
   EXPECT_EQ(unknown.exit_code, 2);
   EXPECT_THAT(unknown.stderr_text, HasSubstr("--character 'nobody': no character on the server has this name"));
