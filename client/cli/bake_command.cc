@@ -280,30 +280,8 @@ Runner AddBakeCommand(CLI::App& app) {
   Connection& connection = args->connection;
   cmd->add_option("--character", args->character,
                   "bake a server's character (id, 12 or more of its hex digits, or name): frames solved there");
-  cmd->add_option("--server", connection.server,
-                  fmt::format("server address host:port (default: ${}, else {})", kServerVariable, kDefaultServer));
-  cmd->add_flag("--tls", connection.tls, "use TLS");
-  cmd->add_option("--tls-ca", connection.tls_ca, "PEM CA bundle (implies --tls)");
-  cmd->add_option("--tls-cert", connection.tls_cert, "PEM client certificate, for servers requiring mutual TLS");
-  cmd->add_option("--tls-key", connection.tls_key, "PEM private key of --tls-cert");
-  cmd->add_option("--tls-server-name", connection.tls_server_name, "name the server's certificate must carry");
-  cmd->add_option("--token", connection.token, "token sent as 'authorization: Bearer TOKEN'")
-      ->envname("SPRINGBLEND_TOKEN");
-  cmd->add_option("--timeout", connection.timeout_seconds, "seconds each call may take (default: no limit)")
-      ->check(CLI::PositiveNumber);
-  return [args] {
-    try {
-      return RunBake(*args);
-    } catch (const CallError& e) {
-      const CallFailure failure = Explain("bake-rig", e, args->connection);
-      std::cerr << failure.message << "\n";
-      return failure.exit_code;
-    } catch (const ClientError& e) {
-      const CallFailure failure = Explain("bake-rig", CallError("bake-rig", e), args->connection);
-      std::cerr << failure.message << "\n";
-      return failure.exit_code;
-    }
-  };
+  AddConnectionFlags(cmd, &connection);
+  return [args] { return RunExplained("bake-rig", args->connection, [&] { return RunBake(*args); }); };
 }
 
 }  // namespace springblend::cli

@@ -6,6 +6,7 @@
 #include <string>
 #include <vector>
 #include <fstream>
+#include <iostream>
 #include <sstream>
 
 #include "commands.h"
@@ -201,6 +202,47 @@ std::string ResolveCharacter(Client& client, const std::string& command, const s
   for (const std::string& id : found) ids += (ids.empty() ? "" : ", ") + id.substr(0, 16);
   throw Error(ErrorCode::kInvalidInput,
               fmt::format("--character '{}' names {} characters ({}): give more of the id", given, found.size(), ids));
+}
+
+void AddConnectionFlags(CLI::App* cmd, Connection* connection) {
+  cmd->add_option("--server", connection->server,
+                  fmt::format("server address host:port (default: ${}, else {})", kServerVariable, kDefaultServer));
+  cmd->add_flag("--tls", connection->tls, "use TLS, checking the server against the system's roots");
+  cmd->add_option("--tls-ca", connection->tls_ca,
+                  "PEM CA bundle to check the server's certificate with (implies --tls)");
+  cmd->add_option("--tls-cert", connection->tls_cert, "PEM client certificate, for servers requiring mutual TLS");
+  cmd->add_option("--tls-key", connection->tls_key, "PEM private key of --tls-cert");
+  cmd->add_option("--tls-server-name", connection->tls_server_name, "name the server's certificate must carry "
+                                                                    "(default: the host of --server)");
+  cmd->add_option("--token", connection->token, "token sent as 'authorization: Bearer TOKEN'")
+      ->envname("SPRINGBLEND_TOKEN");
+  const auto limit = CommandDeadline(cmd->get_name(), Connection{});
+  cmd->add_option("--timeout", connection->timeout_seconds,
+                  limit ? fmt::format("seconds each call may take (default {:g})", limit->count() / 1000.0)
+                        : std::string("seconds each call may take (default: no limit)"))
+      ->check(CLI::Validator(
+          [](std::string& text) {
+            char* end = nullptr;
+            const double seconds = std::strtod(text.c_str(), &end);
+            return end != text.c_str() && *end == '\0' && seconds > 0.0 && seconds < 1e9
+                       ? std::string()
+                       : fmt::format("seconds, a number above 0 (got '{}')", text);
+          },
+          "SECONDS"));
+}
+
+int RunExplained(const std::string& command, const Connection& connection, const std::function<int()>& run) {
+  try {
+    return run();
+  } catch (const CallError& e) {
+    const CallFailure failure = Explain(command, e, connection);
+    std::cerr << failure.message << "\n";
+    return failure.exit_code;
+  } catch (const ClientError& e) {  // refused by the client library before any call
+    const CallFailure failure = Explain(command, CallError(command, e), connection);
+    std::cerr << failure.message << "\n";
+    return failure.exit_code;
+  }
 }
 
 }  // namespace springblend::cli

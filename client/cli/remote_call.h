@@ -5,7 +5,10 @@
 
 #include <grpcpp/grpcpp.h>
 
+#include <CLI/CLI.hpp>
+
 #include <chrono>
+#include <functional>
 #include <memory>
 #include <optional>
 #include <stdexcept>
@@ -81,5 +84,13 @@ auto Call(const std::string& call, F&& run) -> decltype(run()) {
 // --character as people give it: a full id, a prefix of 12 or more of its hex digits (as the logs and `list`
 // show them), or a character's name; a prefix or name must name exactly one character the server lists.
 std::string ResolveCharacter(Client& client, const std::string& command, const std::string& given);
+
+// The connection flags of a remote command (--server, the TLS flags, --token, --timeout with the command's
+// default deadline in its help), filling *connection.
+void AddConnectionFlags(CLI::App* cmd, Connection* connection);
+
+// Runs a remote command; a failed call (CallError) or a request the client library refused (ClientError) becomes
+// the message Explain gives, on stderr, and its exit code.
+int RunExplained(const std::string& command, const Connection& connection, const std::function<int()>& run);
 
 }  // namespace springblend::cli
