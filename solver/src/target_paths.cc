@@ -13,6 +13,7 @@
 #include <deque>
 #include <mutex>
 
+#include "conjugate_gradients.h"
 #include "frame_conditions.h"
 #include "minimizer.h"
 #include "rig_internals.h"
@@ -37,7 +38,14 @@ constexpr std::uint8_t kSwitch = 2;
 constexpr std::uint8_t kFold = 3;
 // Solved steps at multiples of 1 / kKeptGrid are always kept.
 constexpr double kKeptGrid = 8.0;
-constexpr char kPathsMagic[8] = {'S', 'B', 'P', 'A', 'T', 'H', '0', '2'};
+constexpr char kPathsMagic[8] = {'S', 'B', 'P', 'A', 'T', 'H', '0', '3'};
+constexpr char kPathsMagicV2[8] = {'S', 'B', 'P', 'A', 'T', 'H', '0', '2'};  // no tangents; still read
+// Exact tangents: the central difference step in alpha of the forces and of the correction's map (their
+// truncation error is of order step^2), the conjugate gradients' relative residual, and their cap (a sample
+// whose tangent does not converge within it gets none).
+constexpr double kTangentStep = 1e-4;
+constexpr double kTangentAccuracy = 1e-8;
+constexpr int kTangentCgIterations = 30;
 
 // Work run by TBB inside a group that another task's exception cancelled (another target's path that was
 // stopped) is skipped without an exception of its own: what it should have filled is empty, so stop too.
@@ -86,7 +94,20 @@ struct Stencil {
     weight[count] = w;
     ++count;
   }
+  // Exact tangents (TargetPath::tangents) and their weights: at most the interval's two samples.
+  int tangent_count = 0;
+  std::array<int, 2> tangent_sample{};
+  std::array<double, 2> tangent_weight{};
+  void AddExactTangent(int k, double w) {
+    tangent_sample[tangent_count] = k;
+    tangent_weight[tangent_count] = w;
+    ++tangent_count;
+  }
 };
+
+bool HasTangent(const TargetPath& path, int k) {
+  return static_cast<size_t>(k) < path.tangents.size() && path.tangents[k].size() > 0;
+}
 
 // An interval between two branches (a switch, a fold): no tangent carries across it.
 bool Broken(std::uint8_t kind) { return kind == kSwitch || kind == kFold; }
@@ -102,6 +123,10 @@ bool Smooth(const TargetPath& path, int k) {
 
 // Tangent at sample k for interval i (k is i or i + 1) as sample weights.
 void AddTangent(const TargetPath& path, int i, int k, double scale, Stencil* stencil) {
+  if (HasTangent(path, k)) {
+    stencil->AddExactTangent(k, scale);
+    return;
+  }
   const std::vector<double>& a = path.alphas;
   const int n = path.samples();
   std::array<int, 3> nodes{};
@@ -159,6 +184,7 @@ Stencil StencilAt(const TargetPath& path, double alpha) {
 struct Sample {
   double alpha = 0.0;
   Eigen::MatrixXf correction;  // anchor's frame
+  Eigen::MatrixXf tangent;     // its exact derivative in alpha, or empty
   double energy = 0.0;         // infinite when a tentative solve failed
   bool converged = false;
   bool jumped = false;         // its solve went over a fold: far from a start extrapolated along the branch
@@ -171,12 +197,12 @@ class Continuation {
  public:
   static constexpr size_t kOrder = 2;  // at most quadratic
   void Reset() { past_.clear(); }
-  void Add(double alpha, const Points& correction) {
-    past_.push_front({alpha, correction});
+  void Add(double alpha, const Points& correction, const Eigen::MatrixXf& tangent) {
+    past_.push_front({alpha, correction, tangent.cast<double>()});
     if (past_.size() > kOrder + 1) past_.pop_back();
   }
   void Add(const Sample& sample) {
-    if (sample.converged) Add(sample.alpha, sample.correction.cast<double>());
+    if (sample.converged) Add(sample.alpha, sample.correction.cast<double>(), sample.tangent);
   }
   // The predictions at alpha of orders 0 up to what the samples allow (none without samples). A sample
   // joins while the spacing stays within a factor 2 of the step, as the continuation's halvings keep it.
@@ -184,28 +210,47 @@ class Continuation {
     std::vector<Points> out;
     size_t count = 0;
     double last = alpha;
-    for (const auto& [a, c] : past_) {
+    for (const Past& past : past_) {
+      const double a = past.alpha;
       const double spacing = std::abs(last - a);
-      if (count > 0 && (spacing == 0.0 || spacing > 2.5 * std::abs(alpha - past_[0].first))) break;
+      if (count > 0 && (spacing == 0.0 || spacing > 2.5 * std::abs(alpha - past_[0].alpha))) break;
       last = a;
       ++count;
     }
     for (size_t order = 0; order < count; ++order) {
-      Points p = Points::Zero(past_[0].second.rows(), 3);
+      Points p = Points::Zero(past_[0].correction.rows(), 3);
       for (size_t i = 0; i <= order; ++i) {
         double l = 1.0;
         for (size_t j = 0; j <= order; ++j) {
-          if (j != i) l *= (alpha - past_[j].first) / (past_[i].first - past_[j].first);
+          if (j != i) l *= (alpha - past_[j].alpha) / (past_[i].alpha - past_[j].alpha);
         }
-        p += l * past_[i].second;
+        p += l * past_[i].correction;
       }
       out.push_back(std::move(p));
+    }
+    // With exact tangents: the cubic Hermite through the last two samples (their values and tangents),
+    // extrapolated, else the last sample's tangent line. Last, so that it is the one a jump is measured from.
+    if (count >= 1 && past_[0].tangent.size() > 0) {
+      const Past& p0 = past_[0];
+      if (count >= 2 && past_[1].tangent.size() > 0) {
+        const Past& p1 = past_[1];
+        const double h = p0.alpha - p1.alpha, t = (alpha - p1.alpha) / h;
+        const double t2 = t * t, t3 = t2 * t;
+        out.push_back((2 * t3 - 3 * t2 + 1) * p1.correction + (h * (t3 - 2 * t2 + t)) * p1.tangent +
+                      (-2 * t3 + 3 * t2) * p0.correction + (h * (t3 - t2)) * p0.tangent);
+      } else {
+        out.push_back(p0.correction + (alpha - p0.alpha) * p0.tangent);
+      }
     }
     return out;
   }
 
  private:
-  std::deque<std::pair<double, Points>> past_;
+  struct Past {
+    double alpha;
+    Points correction, tangent;
+  };
+  std::deque<Past> past_;
 };
 
 // Samples are solved well below the path's tolerance, so that a midpoint check measures the interpolant's
@@ -274,11 +319,118 @@ class PathSolver {
       const Eigen::MatrixXd zero = Eigen::MatrixXd::Zero(rig_.num_vertices(), 3);
       return Solve(alpha, nullptr, &zero);
     }
-    return {alpha, Eigen::MatrixXf::Zero(rig_.num_vertices(), 3), 0.0, true};
+    Sample sample{alpha, Eigen::MatrixXf::Zero(rig_.num_vertices(), 3), Eigen::MatrixXf(), 0.0, true};
+    sample.tangent = Tangent(alpha, std::move(x));
+    return sample;
+  }
+
+  // The exact tangent at a sample given by its correction (anchor's frame).
+  Eigen::MatrixXf TangentOf(double alpha, const Eigen::MatrixXf& correction) {
+    const Setup setup = SetUp(alpha);
+    Eigen::MatrixXd world = correction.cast<double>();
+    if (setup.conditions.motion) world = world * setup.conditions.motion->rotation.toRotationMatrix().transpose();
+    const int n = rig_.num_vertices();
+    Eigen::VectorXd x(3 * n);
+    for (int v = 0; v < n; ++v) x.segment<3>(3 * v) = (setup.linear.row(v) + world.row(v)).transpose();
+    if (!HoldConditions(rig_, setup.conditions, &x, &held_)) return {};
+    return Tangent(alpha, std::move(x));
+  }
+
+  // The exact tangent of a sample's correction, d correction / d alpha (anchor's frame), at the equilibrium x
+  // of alpha (held coordinates in place, held_ marking them, the springs' rest lengths those of alpha):
+  // differentiating F_f(y_f(alpha), y_h(alpha), alpha) = 0 gives H_ff y_f' = g, g the derivative of the free
+  // forces in alpha with the free coordinates held (the rest lengths and the held vertices moving; central
+  // differences), solved by conjugate gradients with the kept factorization as preconditioner; the
+  // correction's map (minus the linear blend, rotated into the anchor's frame, or aligned for a floating
+  // rig) is then differentiated along (y', 1). Empty where the sample has no smooth tangent: at or next to an
+  // in-between's weight (a kink), or where the Hessian is not positive definite (a fold, a saddle).
+  Eigen::MatrixXf Tangent(double alpha, Eigen::VectorXd x) {
+    const double e = kTangentStep;
+    for (const auto& knot : rig_.internals().controls.targets[target_]) {
+      if (knot.weight < 1.0 && std::abs(alpha - knot.weight) <= 2 * e) return {};
+    }
+    const int n = rig_.num_vertices();
+    Eigen::VectorXd g, velocity = Eigen::VectorXd::Zero(3 * n);
+    for (const double side : {1.0, -1.0}) {
+      const Setup moved = SetUp(alpha + side * e);
+      Eigen::VectorXd y = x;
+      for (const auto& [v, p] : moved.conditions.held) y.segment<3>(3 * v) = p;
+      springs_.Evaluate(y, held_, Curvature{}, false);
+      if (side > 0) {
+        g = springs_.force();
+      } else {
+        g -= springs_.force();
+      }
+      velocity += side * (y - x);
+    }
+    g /= 2 * e;
+    velocity /= 2 * e;  // nonzero on the held coordinates only
+    const Setup here = SetUp(alpha);
+    // The kept factorization (of a nearby sample) preconditions; where there is none, or it is too far off
+    // for the conjugate gradients to converge within their cap, the Hessian at x is factorized (and kept for
+    // the samples after it).
+    const auto factorize = [&] {
+      linear_.Select(held_);
+      std::vector<double> values(springs_.topology().pattern->matrix.row_indices.size());
+      const LadderResult ladder = FactorizeWithLadder(
+          linear_, 0, 1.0 / rig_.summary().mean_rest_length,
+          [&](double negative_scale, double shift) -> const std::vector<double>& {
+            springs_.Assemble(x, held_, Curvature{negative_scale, false}, shift + here.conditions.diagonal_shift,
+                              &values);
+            return values;
+          });
+      return ladder.status == FactorStatus::kOk;
+    };
+    bool fresh = false;
+    if (!linear_.has_factor() || !linear_.FactorCovers(held_)) {
+      if (!factorize()) return {};
+      fresh = true;
+    }
+    springs_.Evaluate(x, held_, Curvature{}, true);
+    ConjugateGradientsOptions options;
+    options.target_norm = kTangentAccuracy * g.norm();
+    options.max_iterations = kTangentCgIterations;
+    if (!cg_ || cg_->last_direction().size() != g.size()) cg_ = std::make_unique<ConjugateGradients>(g.size());
+    Eigen::VectorXd z(g.size());
+    const auto solve = [&] {
+      return cg_->Solve(
+          [&](const Eigen::VectorXd& v, Eigen::VectorXd* out) {
+            springs_.HessianProduct(v, held_, here.conditions.diagonal_shift, out);
+          },
+          [&](const Eigen::VectorXd& r, Eigen::VectorXd* out) { linear_.Solve(r, held_, out); }, g, options, &z,
+          &tangent_cg_iterations);
+    };
+    ConjugateGradientsStatus status = solve();
+    if (status == ConjugateGradientsStatus::kMaxIterations && !fresh) {
+      if (!factorize()) return {};
+      springs_.Evaluate(x, held_, Curvature{}, true);
+      status = solve();
+    }
+    // Negative curvature: the true Hessian is not positive definite at x (a saddle, a fold): no tangent.
+    if (status != ConjugateGradientsStatus::kConverged || !z.allFinite()) return {};
+    velocity += z;
+    // The correction's map along (y', 1).
+    Points ends[2];
+    for (int i = 0; i < 2; ++i) {
+      const double side = i == 0 ? 1.0 : -1.0;
+      const Setup at = SetUp(alpha + side * e);
+      Points solved(n, 3);
+      for (int v = 0; v < n; ++v) solved.row(v) = (x.segment<3>(3 * v) + side * e * velocity.segment<3>(3 * v)).transpose();
+      if (at.conditions.mode == BoundaryMode::kFloating) {
+        AlignRigidly(at.linear.topRows(rig_.num_surface_vertices()), &solved);
+      }
+      ends[i] = solved - at.linear;
+      if (at.conditions.motion) ends[i] = ends[i] * at.conditions.motion->rotation.toRotationMatrix();
+    }
+    SetUp(alpha);
+    const Points tangent = (ends[0] - ends[1]) / (2 * e);
+    if (!tangent.allFinite()) return {};
+    return tangent.cast<float>();
   }
 
   int solves = 0;  // equilibria solved (tentative ones that failed not counted)
   int newton_iterations = 0;
+  int tangent_cg_iterations = 0;
 
   // Solves alpha * target coming from `from` (the previous sample): where the continuation step is too long
   // for Newton to converge, it is halved (up to three times) and the path followed through the midpoints,
@@ -369,7 +521,9 @@ class PathSolver {
     }
     const bool converged = summary.termination == MinimizerTermination::kConverged;
     newton_iterations += summary.iterations;
-    if (!converged && tentative) return {alpha, Eigen::MatrixXf(), std::numeric_limits<double>::infinity(), false};
+    if (!converged && tentative) {
+      return {alpha, Eigen::MatrixXf(), Eigen::MatrixXf(), std::numeric_limits<double>::infinity(), false};
+    }
     ++solves;
     Points solved(n, 3);
     for (int v = 0; v < n; ++v) solved.row(v) = x.segment<3>(3 * v).transpose();
@@ -380,6 +534,9 @@ class PathSolver {
     if (!finite) solved = linear;  // a broken sample only costs its frames a worse start
     Points corrected = solved - linear;
     if (conditions.motion) corrected = corrected * conditions.motion->rotation.toRotationMatrix();  // R^T per row
+    // A sample of the path (not a midpoint check) gets its exact tangent.
+    Eigen::MatrixXf tangent;
+    if (converged && finite && max_iterations == 0) tangent = Tangent(alpha, x);
     if (continuation != nullptr) {
       // A solve whose correction (aligned, for a floating rig: its gauge says nothing) landed far from the one
       // extrapolated along the branch, by more than half of what the step changed, went over a fold to
@@ -391,9 +548,9 @@ class PathSolver {
         jumped = missed > kJump * rig_.summary().bounding_box_diagonal && missed > 0.5 * largest(corrected - last);
       }
       if (jumped) continuation->Reset();
-      if (converged && finite) continuation->Add(alpha, corrected);
+      if (converged && finite) continuation->Add(alpha, corrected, tangent);
     }
-    return {alpha, corrected.cast<float>(),
+    return {alpha, corrected.cast<float>(), std::move(tangent),
             converged && finite ? summary.energy : std::numeric_limits<double>::infinity(), converged && finite,
             jumped};
   }
@@ -406,6 +563,7 @@ class PathSolver {
   SpringSystem springs_;
   LinearSystem linear_;
   std::unique_ptr<Minimizer> minimizer_;
+  std::unique_ptr<ConjugateGradients> cg_;
   std::vector<char> held_;
 };
 
@@ -572,6 +730,7 @@ void BuildPath(const Rig& rig, int target, const TargetPathsOptions& options, Ta
   for (int k : dense_of) {
     path->alphas.push_back(dense[k].alpha);
     path->corrections.push_back(dense[k].correction);
+    path->tangents.push_back(dense[k].tangent);
     path->breaks.push_back(dense_break[k]);
   }
   for (size_t i = 0; i + 1 < dense_of.size(); ++i) {
@@ -663,6 +822,23 @@ void BuildPath(const Rig& rig, int target, const TargetPathsOptions& options, Ta
       }
     }
     if (split.empty()) break;
+    // The solved midpoints that become samples get their exact tangents (half on each solver).
+    {
+      std::vector<size_t> solved;
+      for (size_t a = 0; a < added.size(); ++a) {
+        if (added_dense[a] < 0 && added[a].converged) solved.push_back(a);
+      }
+      const auto tangents = [&](PathSolver& on, size_t from, size_t to) {
+        for (size_t t = from; t < to; ++t) {
+          Sample& sample = added[solved[t]];
+          sample.tangent = on.TangentOf(sample.alpha, sample.correction);
+        }
+      };
+      const size_t half_solved = solved.size() / 2;
+      tbb::parallel_invoke([&] { tangents(solver, 0, half_solved); },
+                           [&] { tangents(side, half_solved, solved.size()); });
+      ThrowIfCancelled();
+    }
     // Insert the new samples; the split intervals' halves and their neighbours (whose tangents changed) are
     // checked again.
     TargetPath next;
@@ -673,6 +849,7 @@ void BuildPath(const Rig& rig, int target, const TargetPathsOptions& options, Ta
     for (size_t i = 0; i < path->alphas.size(); ++i) {
       next.alphas.push_back(path->alphas[i]);
       next.corrections.push_back(std::move(path->corrections[i]));
+      next.tangents.push_back(std::move(path->tangents[i]));
       next.breaks.push_back(path->breaks[i]);
       next_dense.push_back(dense_of[i]);
       if (i + 1 == path->alphas.size()) break;
@@ -680,6 +857,7 @@ void BuildPath(const Rig& rig, int target, const TargetPathsOptions& options, Ta
         if (added_dense[s] < 0 && !added[s].converged) ++path->unconverged;
         next.alphas.push_back(added[s].alpha);
         next.corrections.push_back(std::move(added[s].correction));
+        next.tangents.push_back(std::move(added[s].tangent));
         next.breaks.push_back(0);
         next_dense.push_back(added_dense[s]);
         for (int half_interval = 0; half_interval < 2; ++half_interval) {
@@ -700,6 +878,7 @@ void BuildPath(const Rig& rig, int target, const TargetPathsOptions& options, Ta
     }
     path->alphas = std::move(next.alphas);
     path->corrections = std::move(next.corrections);
+    path->tangents = std::move(next.tangents);
     path->breaks = std::move(next.breaks);
     path->certified = std::move(certified);
     dense_of = std::move(next_dense);
@@ -713,6 +892,7 @@ void BuildPath(const Rig& rig, int target, const TargetPathsOptions& options, Ta
   }
   path->solves = solver.solves + side.solves;
   path->newton_iterations = solver.newton_iterations + side.newton_iterations;
+  path->tangent_cg_iterations = solver.tangent_cg_iterations + side.tangent_cg_iterations;
   path->build_ms = Elapsed(start);
 }
 
@@ -726,6 +906,7 @@ int TargetPath::uncertified() const {
 std::int64_t TargetPath::bytes() const {
   std::int64_t total = static_cast<std::int64_t>(alphas.size() * (sizeof(double) + 2));
   for (const Eigen::MatrixXf& c : corrections) total += static_cast<std::int64_t>(c.size() * sizeof(float));
+  for (const Eigen::MatrixXf& t : tangents) total += static_cast<std::int64_t>(t.size() * sizeof(float));
   return total;
 }
 
@@ -767,6 +948,11 @@ void EvaluatePath(const TargetPath& path, double alpha, Eigen::MatrixXd* correct
   for (int i = 0; i < stencil.count; ++i) {
     if (stencil.weight[i] != 0.0) *correction += stencil.weight[i] * path.corrections[stencil.sample[i]].cast<double>();
   }
+  for (int i = 0; i < stencil.tangent_count; ++i) {
+    if (stencil.tangent_weight[i] != 0.0) {
+      *correction += stencil.tangent_weight[i] * path.tangents[stencil.tangent_sample[i]].cast<double>();
+    }
+  }
 }
 
 void AddPathCorrections(const std::vector<TargetPath>& paths, const std::vector<double>& weights,
@@ -780,6 +966,11 @@ void AddPathCorrections(const std::vector<TargetPath>& paths, const std::vector<
     const Stencil stencil = StencilAt(path, weights[t]);
     for (int i = 0; i < stencil.count; ++i) {
       if (stencil.weight[i] != 0.0) sum += stencil.weight[i] * path.corrections[stencil.sample[i]].cast<double>();
+    }
+    for (int i = 0; i < stencil.tangent_count; ++i) {
+      if (stencil.tangent_weight[i] != 0.0) {
+        sum += stencil.tangent_weight[i] * path.tangents[stencil.tangent_sample[i]].cast<double>();
+      }
     }
     any = true;
   }
@@ -843,6 +1034,13 @@ std::string SerializeTargetPaths(const std::vector<TargetPath>& paths) {
     for (const Eigen::MatrixXf& c : p.corrections) {
       out.append(reinterpret_cast<const char*>(c.data()), sizeof(float) * static_cast<size_t>(c.size()));
     }
+    // Version 3: per sample, whether it has an exact tangent, then those tangents.
+    for (int k = 0; k < p.samples(); ++k) out.push_back(HasTangent(p, k) ? 1 : 0);
+    for (int k = 0; k < p.samples(); ++k) {
+      if (!HasTangent(p, k)) continue;
+      const Eigen::MatrixXf& t = p.tangents[k];
+      out.append(reinterpret_cast<const char*>(t.data()), sizeof(float) * static_cast<size_t>(t.size()));
+    }
   }
   return out;
 }
@@ -851,10 +1049,12 @@ std::optional<std::vector<TargetPath>> ParseTargetPaths(const std::string& bytes
                                                         std::string* why) {
   Cursor in(bytes);
   char magic[sizeof(kPathsMagic)];
-  if (!in.GetBytes(magic, sizeof(magic)) || std::memcmp(magic, kPathsMagic, sizeof(magic)) != 0) {
-    *why = "not target paths of this version";
+  if (!in.GetBytes(magic, sizeof(magic)) || (std::memcmp(magic, kPathsMagic, sizeof(magic)) != 0 &&
+                                              std::memcmp(magic, kPathsMagicV2, sizeof(magic)) != 0)) {
+    *why = "not target paths of a known version";
     return std::nullopt;
   }
+  const bool with_tangents = std::memcmp(magic, kPathsMagic, sizeof(magic)) == 0;
   std::uint32_t count = 0, rows = 0;
   if (!in.Get(&count) || !in.Get(&rows)) {
     *why = "truncated";
@@ -892,6 +1092,18 @@ std::optional<std::vector<TargetPath>> ParseTargetPaths(const std::string& bytes
       Eigen::MatrixXf c(rows, 3);
       ok = in.GetBytes(c.data(), sizeof(float) * 3 * static_cast<size_t>(rows)) && c.allFinite();
       p.corrections.push_back(std::move(c));
+    }
+    p.tangents.assign(samples, Eigen::MatrixXf());
+    if (ok && with_tangents) {
+      std::vector<std::uint8_t> has(samples);
+      ok = in.GetBytes(has.data(), samples);
+      for (std::uint32_t k = 0; ok && k < samples; ++k) {
+        if (has[k] > 1) ok = false;
+        if (!ok || has[k] == 0) continue;
+        Eigen::MatrixXf t(rows, 3);
+        ok = in.GetBytes(t.data(), sizeof(float) * 3 * static_cast<size_t>(rows)) && t.allFinite();
+        p.tangents[k] = std::move(t);
+      }
     }
     for (std::uint32_t k = 0; ok && k + 1 < samples; ++k) {
       ok = std::isfinite(p.alphas[k]) && p.alphas[k] < p.alphas[k + 1] && p.certified[k] <= kFold;

@@ -37,6 +37,11 @@ namespace springblend::internal {
 struct TargetPath {
   std::vector<double> alphas;                 // ascending sample weights of the target; 0 and 1 among them
   std::vector<Eigen::MatrixXf> corrections;   // per sample: #vertices by 3, in the anchor's frame
+  // Per sample: the exact derivative of its correction in alpha (#vertices by 3, anchor's frame), from one
+  // linear solve with the sample's own Hessian; empty where there is none (an in-between's kink, a sample
+  // that is not a minimum, a path loaded from an older cache file): the interpolant then takes a three-point
+  // tangent there.
+  std::vector<Eigen::MatrixXf> tangents;
   std::vector<std::uint8_t> breaks;           // per sample: 1 at an in-between's weight (a kink: one-sided tangents)
   // Per interval (alphas.size() - 1): 1 where the check passed, 0 where it did not within the cap, 2 for the
   // interval that switches from the up branch to the down branch, 3 for a fold (the sweep jumped branches).
@@ -45,6 +50,7 @@ struct TargetPath {
   double build_ms = 0.0;    // wall time of this path's build
   int solves = 0;           // equilibria solved for it (samples and checks)
   int newton_iterations = 0;
+  int tangent_cg_iterations = 0;  // conjugate-gradient iterations of the exact tangents' solves
   int unconverged = 0;      // samples whose solve did not converge (kept as the best found)
   bool empty() const { return corrections.empty(); }
   int samples() const { return static_cast<int>(alphas.size()); }
@@ -80,7 +86,7 @@ bool TargetChangesLengths(const Rig& rig, int target);
 std::vector<TargetPath> BuildTargetPaths(const Rig& rig, const TargetPathsOptions& options, TargetPathsReport* report);
 
 // The path's correction at alpha (#vertices by 3, anchor's frame): cubic Hermite between the samples with
-// three-point tangents, held at the end samples beyond them.
+// their exact tangents (three-point ones where a sample has none), held at the end samples beyond them.
 void EvaluatePath(const TargetPath& path, double alpha, Eigen::MatrixXd* correction);
 
 // x += sum_t R correction_t(w_t), stacked 3n, over the targets' frame weights, rotated by the frame's anchor
