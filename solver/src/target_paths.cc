@@ -44,7 +44,7 @@ constexpr char kPathsMagicV2[8] = {'S', 'B', 'P', 'A', 'T', 'H', '0', '2'};  // 
 // truncation error is of order step^2), the conjugate gradients' relative residual, and their cap (a sample
 // whose tangent does not converge within it gets none).
 constexpr double kTangentStep = 1e-4;
-constexpr double kTangentAccuracy = 1e-8;
+constexpr double kTangentAccuracy = 1e-6;
 constexpr int kTangentCgIterations = 30;
 
 // Work run by TBB inside a group that another task's exception cancelled (another target's path that was
@@ -345,6 +345,7 @@ class PathSolver {
   // rig) is then differentiated along (y', 1). Empty where the sample has no smooth tangent: at or next to an
   // in-between's weight (a kink), or where the Hessian is not positive definite (a fold, a saddle).
   Eigen::MatrixXf Tangent(double alpha, Eigen::VectorXd x) {
+    if (stop_ != nullptr && *stop_ && (*stop_)()) ThrowCancelled();
     const double e = kTangentStep;
     for (const auto& knot : rig_.internals().controls.targets[target_]) {
       if (knot.weight < 1.0 && std::abs(alpha - knot.weight) <= 2 * e) return {};
@@ -402,6 +403,7 @@ class PathSolver {
     };
     ConjugateGradientsStatus status = solve();
     if (status == ConjugateGradientsStatus::kMaxIterations && !fresh) {
+      if (stop_ != nullptr && *stop_ && (*stop_)()) ThrowCancelled();
       if (!factorize()) return {};
       springs_.Evaluate(x, held_, Curvature{}, true);
       status = solve();

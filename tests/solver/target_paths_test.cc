@@ -8,11 +8,13 @@
 
 #include <atomic>
 #include <chrono>
+#include <functional>
 #include <random>
 #include <thread>
 
 #include "springblend/rig.h"
 #include "springblend/solve.h"
+#include "target_paths.h"
 #include "test_util.h"
 
 namespace springblend {
@@ -208,6 +210,75 @@ TEST(TargetPaths, LocalFinishOffGivesTheSameEquilibrium) {
     ASSERT_TRUE(summary.converged());
     EXPECT_EQ(summary.finish, Finish::kFull);
     EXPECT_LE(MaxDistance(x, y) / rig->summary().bounding_box_diagonal, 1e-6) << "alpha " << a;
+  }
+}
+
+// Each sample of a path carries its exact tangent (one linear solve with the sample's own Hessian), and the
+// interpolant takes it: at grid samples of the bend (every 1/32 is a sample), the slope of the frames' start in
+// the weight equals the slope of tightly solved equilibria. A three-point tangent from samples 1/32 apart
+// misses it by about 1e-3 of its size; the exact one is within the linear solve's accuracy.
+TEST(TargetPaths, SamplesCarryExactTangents) {
+  const auto& rig = SharedCylinder();
+  Solver tight(rig, Tight());
+  const double delta = 1e-4;
+  for (double a : {0.25, 0.375, 0.75}) {
+    const auto slope = [&](const std::function<Points(double)>& at) {
+      return Points((at(a + delta) - at(a - delta)) / (2 * delta));
+    };
+    const Points start_slope = slope([&](double w) { return tight.Start({w, 0.0}); });
+    const Points solved_slope = slope([&](double w) {
+      Points x;
+      const SolveSummary s = tight.Solve(Frame{{w, 0.0}}, &x);
+      EXPECT_TRUE(s.converged()) << s.message;
+      return Points(tight.all_positions());
+    });
+    const double size = std::sqrt(solved_slope.rowwise().squaredNorm().maxCoeff());
+    ASSERT_GT(size, 0.0);
+    EXPECT_LE(MaxDistance(start_slope, solved_slope) / size, 1e-5) << "alpha " << a;
+  }
+}
+
+// Paths saved by the previous version (bytes "SBPATH02": no tangents) still load: the interpolant then takes
+// three-point tangents, and frames converge to the same equilibria.
+TEST(TargetPaths, PathsOfThePreviousVersionStillLoad) {
+  const auto& rig = SharedCylinder();
+  const std::string bytes = rig->SavePrecomputed();
+  std::string why;
+  const auto paths = internal::ParseTargetPaths(bytes, rig->num_targets(), rig->num_vertices(), &why);
+  ASSERT_TRUE(paths.has_value()) << why;
+  // The version-2 layout: magic, path count, vertex count, then per path its samples, max error, solves, Newton
+  // iterations, unconverged samples, alphas, breaks, interval kinds and corrections.
+  std::string old("SBPATH02", 8);
+  const auto put = [&](const auto& value) { old.append(reinterpret_cast<const char*>(&value), sizeof(value)); };
+  put(static_cast<std::uint32_t>(paths->size()));
+  put(static_cast<std::uint32_t>(rig->num_vertices()));
+  int with_tangents = 0;
+  for (const internal::TargetPath& p : *paths) {
+    put(static_cast<std::uint32_t>(p.samples()));
+    if (p.empty()) continue;
+    put(p.max_error);
+    put(static_cast<std::int32_t>(p.solves));
+    put(static_cast<std::int32_t>(p.newton_iterations));
+    put(static_cast<std::int32_t>(p.unconverged));
+    for (double a : p.alphas) put(a);
+    old.append(reinterpret_cast<const char*>(p.breaks.data()), p.breaks.size());
+    old.append(reinterpret_cast<const char*>(p.certified.data()), p.certified.size());
+    for (const Eigen::MatrixXf& c : p.corrections) old.append(reinterpret_cast<const char*>(c.data()), 4 * c.size());
+    for (const Eigen::MatrixXf& t : p.tangents) with_tangents += t.size() > 0 ? 1 : 0;
+  }
+  EXPECT_GT(with_tangents, rig->summary().path_samples / 2);
+  RigBuildControl control;
+  control.precomputed = &old;
+  const auto loaded = Rig::Build(LoadMesh(DataPath("cylinder/cylinder.obj")), CylinderSpecs(), {}, control);
+  EXPECT_TRUE(loaded->summary().paths_loaded);
+  EXPECT_LT(loaded->summary().path_bytes, rig->summary().path_bytes);  // no tangents
+  Solver shipped(loaded), reference(rig, Tight());
+  for (double w : {0.3, 0.9}) {
+    Points x, y;
+    const SolveSummary summary = shipped.Solve(Frame{{w, 0.0}}, &x);
+    ASSERT_TRUE(summary.converged()) << summary.message;
+    ASSERT_TRUE(reference.Solve(Frame{{w, 0.0}}, &y).converged());
+    EXPECT_LE(MaxDistance(x, y) / rig->summary().bounding_box_diagonal, 1e-6) << "alpha " << w;
   }
 }
 
