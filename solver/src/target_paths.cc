@@ -168,7 +168,16 @@ Stencil StencilAt(const TargetPath& path, double alpha) {
   const int i = static_cast<int>(std::upper_bound(a.begin(), a.end(), alpha) - a.begin()) - 1;
   const double h = a[i + 1] - a[i];
   const double s = (alpha - a[i]) / h;
-  if (Broken(path.certified[i])) {  // between two branches: no tangent carries across
+  if (Broken(path.certified[i])) {
+    // Between two branches (a fold or the switch somewhere inside): no tangent carries across. Each half
+    // follows the branch of its own end, along that sample's exact tangent (a blend of the two branches is
+    // on neither); the linear blend of the two where that end has none.
+    const int near = s <= 0.5 ? i : i + 1;
+    if (HasTangent(path, near)) {
+      stencil.Add(near, 1.0);
+      stencil.AddExactTangent(near, alpha - a[near]);
+      return stencil;
+    }
     stencil.Add(i, 1.0 - s);
     stencil.Add(i + 1, s);
     return stencil;
@@ -198,7 +207,9 @@ class Continuation {
   static constexpr size_t kOrder = 2;  // at most quadratic
   void Reset() { past_.clear(); }
   void Add(double alpha, const Points& correction, const Eigen::MatrixXf& tangent) {
-    past_.push_front({alpha, correction, tangent.cast<double>()});
+    // An empty tangent stays empty (0 x 3): Points has three columns, an empty MatrixXf none.
+    Points t = tangent.size() > 0 ? Points(tangent.cast<double>()) : Points(0, 3);
+    past_.push_front({alpha, correction, std::move(t)});
     if (past_.size() > kOrder + 1) past_.pop_back();
   }
   void Add(const Sample& sample) {
