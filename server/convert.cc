@@ -431,6 +431,7 @@ void ToOptions(const v1::SolveOptions& o, SolveJob* job) {
   if (o.max_iterations() != 0) job->options.max_iterations = static_cast<int>(std::min<std::uint32_t>(o.max_iterations(), 1'000'000));
   job->options.linear = o.linear();
   job->with_normals = o.with_normals();
+  job->options.certify_minimum = o.certify_minimum();
   try {
     job->options.Validate();
   } catch (const Error& e) {
@@ -633,6 +634,8 @@ v1::SolvedFrame ToProto(int index, const Points& positions, const Faces& faces, 
   s->set_finish(ToString(summary.finish));
   s->set_solved_vertices(summary.solved_vertices);
   s->set_free_vertices(summary.free_vertices);
+  s->set_minimum(ToString(summary.minimum));
+  s->set_certify_ms(summary.certify_ms);
   return out;
 }
 

@@ -8,6 +8,7 @@
 #include <memory>
 #include <nlohmann/json.hpp>
 #include <string>
+#include <utility>
 #include <vector>
 
 #include "commands.h"
@@ -113,16 +114,15 @@ int RunBlend(const BlendArgs& args) {
   rig_options.bending_stiffness = args.bending_stiffness;
   rig_options.linear_solver = LinearSolverTypeFromString(args.solver);
   rig_options.target_paths = !args.no_target_paths;
-  if (args.linear) {
-    // The linear blendshape needs none of the physics: no paths, no volume to place in every shape.
-    rig_options.target_paths = false;
-    rig_options.interior = false;
-    rig_options.shell = false;
-    rig_options.anchor = false;
-  }
-
-  const std::shared_ptr<const Rig> rig = BuildRigFromFlags(args.rig, args.rest, args.targets, rig_options);
-  if (args.verbose) std::cerr << RigJson(rig->summary()).dump() << "\n";
+  // The plain rig (the meshes, their targets and names, no physics: milliseconds to build) is all the linear
+  // blendshape needs, and all it takes to check the request: a bad weight, name, scene field or collider is
+  // refused before the physics is built (minutes on a production face), not after.
+  RigOptions plain_options = rig_options;
+  plain_options.target_paths = false;
+  plain_options.interior = false;
+  plain_options.shell = false;
+  plain_options.anchor = false;
+  const std::shared_ptr<const Rig> plain = BuildRigFromFlags(args.rig, args.rest, args.targets, plain_options);
 
   SolveOptions options;
   options.residual_tolerance = args.tolerance;
@@ -138,30 +138,29 @@ int RunBlend(const BlendArgs& args) {
   } else if (args.hessian != "true") {
     throw Error(ErrorCode::kInvalidInput, "--hessian must be 'true' or 'projected', got '" + args.hessian + "'");
   }
-  Solver solver(rig, options);
+  options.Validate();
 
   std::vector<Frame> frames;
   std::vector<std::string> collider_specs = args.colliders;
   Scene scene;
   if (!args.frames_file.empty()) {
     scene = LoadScene(args.frames_file);
-    scene.ResolveNames(rig->target_names());
+    scene.ResolveNames(plain->target_names());
     collider_specs.insert(collider_specs.begin(), scene.colliders.begin(), scene.colliders.end());
   }
   std::vector<Collider> colliders;
   for (const auto& spec : collider_specs) colliders.push_back(ParseCollider(spec));
-  solver.SetColliders(std::move(colliders));
   std::vector<Pin> pins;
   for (const auto& spec : args.pins) pins.push_back(ParsePin(spec));
 
-  std::vector<double> weights = ResolveWeights(ParseWeightItems(args.weights), rig->target_names(), "--weights");
-  if (weights.empty() && rig->num_targets() == 1) weights = {1.0};
+  std::vector<double> weights = ResolveWeights(ParseWeightItems(args.weights), plain->target_names(), "--weights");
+  if (weights.empty() && plain->num_targets() == 1) weights = {1.0};
   if (weights.empty() && args.frames_file.empty()) {
     throw Error(ErrorCode::kInvalidInput,
                 fmt::format("--weights is required with {} targets (one weight per target, in order)",
-                            rig->num_targets()));
+                            plain->num_targets()));
   }
-  if (args.frames_file.empty()) ValidateWeights(*rig, weights);
+  if (args.frames_file.empty()) ValidateWeights(*plain, weights);
   const bool many = args.sweep > 0 || !args.frames_file.empty();
   if (!args.frames_file.empty()) {
     frames = std::move(scene.frames);
@@ -170,14 +169,31 @@ int RunBlend(const BlendArgs& args) {
   } else {
     frames.push_back(Frame{weights});
   }
-  for (size_t i = 0; i < frames.size(); ++i) {
-    frames[i].pins.insert(frames[i].pins.end(), pins.begin(), pins.end());
-    try {
-      ValidateFrame(*rig, frames[i], collider_specs.size());
-    } catch (const Error& e) {
-      throw Error(e.code(), fmt::format("frames[{}]: {}", i, e.what()));
+  // Every frame checked on the plain rig (pins aside: the physical rig may add interior vertices to pin).
+  const auto validate = [&](const Rig& rig) {
+    for (size_t i = 0; i < frames.size(); ++i) {
+      try {
+        ValidateFrame(rig, frames[i], collider_specs.size());
+      } catch (const Error& e) {
+        throw Error(e.code(), fmt::format("frames[{}]: {}", i, e.what()));
+      }
     }
+  };
+  std::vector<std::vector<Pin>> frame_pins(frames.size());
+  for (size_t i = 0; i < frames.size(); ++i) frame_pins[i] = std::exchange(frames[i].pins, {});
+  validate(*plain);
+  for (size_t i = 0; i < frames.size(); ++i) {
+    frames[i].pins = std::move(frame_pins[i]);
+    frames[i].pins.insert(frames[i].pins.end(), pins.begin(), pins.end());
   }
+
+  // The physics (for --linear, the plain rig is the answer).
+  const std::shared_ptr<const Rig> rig =
+      args.linear ? plain : BuildRigFromFlags(args.rig, args.rest, args.targets, rig_options);
+  if (args.verbose) std::cerr << RigJson(rig->summary()).dump() << "\n";
+  validate(*rig);
+  Solver solver(rig, options);
+  solver.SetColliders(std::move(colliders));
   FrameOutput output(args.out, many, rig->rest().faces, static_cast<int>(rig->rest().vertices.rows()), args.timing);
 
   bool all_converged = true;
@@ -221,7 +237,7 @@ Runner AddBlendCommand(CLI::App& app) {
   cmd->add_flag("--linear", args->linear, "output the plain linear blendshape instead (for comparison)");
   cmd->add_flag("--certify", args->certify,
                 "check that each converged answer is a local minimum (one factorization of the true Hessian): the "
-                "frame's JSON line says \"minimum\": \"minimum\" or \"not a minimum\"");
+                "frame's JSON line says \"minimum\": \"minimum\" or \"not_a_minimum\"");
   cmd->add_option("--fixed", args->fixed, "vertex indices (0-based) held as boundary conditions")
       ->delimiter(',');
   cmd->add_option("--static-tolerance", args->static_tolerance,

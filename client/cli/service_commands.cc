@@ -41,7 +41,7 @@ struct RemoteArgs {
   std::vector<std::string> colliders, pins;
   double tolerance = 0.0;
   int max_iterations = 0;
-  bool linear = false, normals = false;
+  bool linear = false, normals = false, certify = false;
 };
 
 v1::Vec3 ToVec3(double x, double y, double z) {
@@ -237,6 +237,7 @@ int RunSolve(const RemoteArgs& args) {
   request.mutable_options()->set_max_iterations(static_cast<std::uint32_t>(args.max_iterations));
   request.mutable_options()->set_linear(args.linear);
   request.mutable_options()->set_with_normals(args.normals);
+  request.mutable_options()->set_certify_minimum(args.certify);
 
   FrameOutput output(args.out, /*many=*/true, faces, static_cast<int>(character.summary().surface_vertices()),
                      args.timing);
@@ -258,7 +259,8 @@ int RunSolve(const RemoteArgs& args) {
                                  {"newton_iterations", s.newton_iterations()}, {"residual", s.residual()},
                                  {"contacts", s.contacts()}, {"pins", s.pins()},
                                  {"inverted_tetrahedra", s.inverted_tetrahedra()}, {"finish", s.finish()},
-                                 {"solved_vertices", s.solved_vertices()}, {"solve_ms", s.solve_ms()},
+                                 {"solved_vertices", s.solved_vertices()}, {"minimum", s.minimum()},
+                                 {"solve_ms", s.solve_ms()},
                                  {"received_ms", received_ms}, {"served_by", s.served_by()}};
     if (progress) {
       const double seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
@@ -413,6 +415,9 @@ std::vector<std::pair<std::string, Runner>> AddServiceCommands(CLI::App& app) {
   solve->add_option("--max-iterations", args->max_iterations, "Newton iterations per frame");
   solve->add_flag("--linear", args->linear, "the linear blendshape");
   solve->add_flag("--normals", args->normals, "ask for normals too");
+  solve->add_flag("--certify", args->certify,
+                  "have the server check that each converged answer is a local minimum (about one factorization "
+                  "more per frame): the frame's JSON line says \"minimum\": \"minimum\" or \"not_a_minimum\"");
   runners.emplace_back("solve", Guarded("solve", args, RunSolve));
 
   CLI::App* list = app.add_subcommand("list", "list the server's characters as JSON lines");

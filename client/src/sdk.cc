@@ -267,6 +267,7 @@ int Client::Solve(const std::string& character_id, const std::vector<Frame>& fra
   request.mutable_options()->set_max_iterations(static_cast<std::uint32_t>(std::max(0, options.max_iterations)));
   request.mutable_options()->set_linear(options.linear);
   request.mutable_options()->set_with_normals(options.normals);
+  request.mutable_options()->set_certify_minimum(options.certify_minimum);
   return Guard([&] {
     return impl_->client.Solve(request, [&](const v1::SolvedFrame& frame) {
       if (!on_frame) return;
@@ -282,6 +283,8 @@ int Client::Solve(const std::string& character_id, const std::vector<Frame>& fra
       out.contacts = static_cast<int>(s.contacts());
       out.residual = s.residual();
       out.solve_ms = s.solve_ms();
+      out.finish = s.finish();
+      out.minimum = s.minimum();
       on_frame(out);
     });
   });

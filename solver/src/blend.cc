@@ -22,9 +22,9 @@ const char* ToString(HessianMode mode) {
 
 const char* ToString(MinimumCheck check) {
   switch (check) {
-    case MinimumCheck::kNotChecked: return "not checked";
+    case MinimumCheck::kNotChecked: return "not_checked";
     case MinimumCheck::kMinimum: return "minimum";
-    case MinimumCheck::kNotMinimum: return "not a minimum";
+    case MinimumCheck::kNotMinimum: return "not_a_minimum";
   }
   return "unknown";
 }

@@ -5,6 +5,8 @@
 
 #include <fmt/format.h>
 
+#include <chrono>
+#include <filesystem>
 #include <fstream>
 
 #include "integration/cli_process.h"
@@ -209,6 +211,33 @@ TEST(CliBlend, WeightsByNameAreTheTargetsOwnAndBadFieldsAreNamed) {
   EXPECT_EQ(pin.exit_code, 2);
   EXPECT_THAT(pin.stderr_text, HasSubstr("frames[0].pins[0].position[1] must be a number"));
   EXPECT_FALSE(std::filesystem::exists(dir.File("pins/frame_0000.obj")));
+}
+
+// A request's mistakes are refused before the rig's physics is built: on the bundled face, whose target path
+// alone takes about a minute to build (several under the sanitizers), a misspelt weight, a bad scene file and a
+// bad collider come back at once with exit code 2 and nothing written. (A liveness bound, not a timing: the
+// refusals take well under a second; the build they skip, a minute or more.)
+TEST(CliRefusals, MistakesAreRefusedBeforeThePhysicsIsBuilt) {
+  TempDir dir;
+  const std::string face = "blend --rest " + DataPath("face/generic_neutral_mesh.obj") + " --target " +
+                           DataPath("face/jawOpen.obj");
+  const std::string scene = dir.Write("scene.json", R"({"frames": [{"weights": {"jawOpen": 0.5}},
+                                                                  {"weights": {"jawopen": 0.5}}]})");
+  const std::vector<std::pair<std::string, std::string>> cases = {
+      {" --weights jawOpne=1", "'jawOpne' is not a target of this character (targets: jawOpen)"},
+      {" --frames " + scene, "frames[1].weights: 'jawopen' is not a target"},
+      {" --weights 1 --collider sphere:0,0,0,-1", "radius"},
+      {" --weights 1e300", "beyond"},
+  };
+  for (const auto& [arguments, message] : cases) {
+    const auto start = std::chrono::steady_clock::now();
+    const CliRun run = RunCli(face + arguments + " --out " + dir.File("out"), dir);
+    const double seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
+    EXPECT_EQ(run.exit_code, 2) << arguments << ": " << run.stderr_text;
+    EXPECT_THAT(run.stderr_text, HasSubstr(message)) << arguments;
+    EXPECT_LT(seconds, 30.0) << arguments << ": the refusal waited for the physics";
+    EXPECT_FALSE(std::filesystem::exists(dir.File("out"))) << arguments;
+  }
 }
 
 // A point cache placed on a shot's timeline: --start-frame and --sample-rate go into its header; they are

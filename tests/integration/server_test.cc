@@ -84,6 +84,29 @@ TEST_F(ServerTest, ASweepStreamsEveryFrameEqualToTheLocalSolve) {
   }
 }
 
+// SolveOptions.certify_minimum: every converged answer comes back certified a strict local minimum (the true
+// Hessian's Cholesky at the answer), with the certificate's time; the answers are the uncertified ones, and
+// without the option nothing is checked.
+TEST_F(ServerTest, CertifiedFramesComeBackAsMinimaWithTheSameAnswers) {
+  const v1::Character c = client_->Upload(cylinder_.rest, cylinder_.targets);
+  const std::vector<double> end = {0.9, 0.6};
+  std::vector<v1::SolvedFrame> plain, certified;
+  v1::SolveRequest request = SweepRequest(c.id(), 4, end);
+  ASSERT_EQ(client_->Solve(request, [&](const v1::SolvedFrame& f) { plain.push_back(f); }), 4);
+  request.mutable_options()->set_certify_minimum(true);
+  ASSERT_EQ(client_->Solve(request, [&](const v1::SolvedFrame& f) { certified.push_back(f); }), 4);
+  for (size_t i = 0; i < 4; ++i) {
+    EXPECT_EQ(plain[i].summary().minimum(), "not_checked") << "frame " << i;
+    EXPECT_EQ(plain[i].summary().certify_ms(), 0.0) << "frame " << i;
+    const v1::FrameSummary& s = certified[i].summary();
+    ASSERT_TRUE(s.converged()) << s.message();
+    EXPECT_EQ(s.minimum(), "minimum") << "frame " << i;
+    EXPECT_GT(s.certify_ms(), 0.0) << "frame " << i;
+    EXPECT_LE(s.certify_ms(), s.solve_ms()) << "frame " << i;
+    EXPECT_EQ(certified[i].positions(), plain[i].positions()) << "frame " << i;
+  }
+}
+
 TEST_F(ServerTest, ARestartServesKnownCharactersFromTheCacheDirectory) {
   const v1::Character c = client_->Upload(cylinder_.rest, cylinder_.targets);
   EXPECT_EQ(server_->Stop(), 0);  // SIGTERM drains and exits cleanly

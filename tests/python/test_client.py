@@ -116,6 +116,14 @@ class ClientTest(unittest.TestCase):
         self.assertEqual(frames[0].summary.pins, 1)
         np.testing.assert_allclose(frames[0].positions[0], self.rest[0], atol=1e-5 * self.diagonal)
 
+    def test_certified_frames_say_they_are_minima(self):
+        plain = self.client.solve(self.character.id, WEIGHTS[:2])
+        certified = self.client.solve(self.character.id, WEIGHTS[:2], certify_minimum=True)
+        self.assertEqual([s.minimum for s in plain.summaries], ["not_checked"] * 2)
+        self.assertEqual([s.minimum for s in certified.summaries], ["minimum"] * 2)
+        self.assertTrue(all(s.certify_ms > 0 for s in certified.summaries))
+        np.testing.assert_array_equal(certified.positions, plain.positions)
+
     def test_linear_option_is_the_linear_blend(self):
         solution = self.client.solve(self.character.id, [0.5, 0.25], linear=True)
         targets = list(self.targets.values())

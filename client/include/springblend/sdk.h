@@ -139,6 +139,9 @@ struct SolveOptions {
   int max_iterations = 0;
   bool linear = false;   // the plain linear blendshape
   bool normals = false;  // per-vertex normals too
+  // Certify each converged answer as a local minimum (about one factorization more per frame):
+  // SolvedFrame::minimum.
+  bool certify_minimum = false;
 };
 
 struct SolvedFrame {
@@ -149,6 +152,8 @@ struct SolvedFrame {
   std::string termination, message;
   int newton_iterations = 0, contacts = 0;
   double residual = 0.0, solve_ms = 0.0;
+  std::string finish;   // full | local (finished only where out of balance) | none
+  std::string minimum;  // minimum | not_a_minimum | not_checked (SolveOptions::certify_minimum)
 };
 
 class SPRINGBLEND_SDK_API Client {

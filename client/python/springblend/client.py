@@ -333,7 +333,7 @@ class Client:
                         summaries=[f.summary for f in frames])
 
     def solve_frames(self, character_id, weights, colliders=(), collider_transforms=None, pins=None,
-                     tolerance=0.0, max_iterations=0, linear=False, normals=False):
+                     tolerance=0.0, max_iterations=0, linear=False, normals=False, certify_minimum=False):
         """Streams a Solve: yields one SolvedFrame per frame as the server finishes it.
 
         Args:
@@ -346,12 +346,15 @@ class Client:
                 message or a (translation, (w, x, y, z)) pair.
             pins: None, or per frame a mapping vertex -> position (or None).
             tolerance, max_iterations, linear, normals: SolveOptions (zero means the server's default).
+            certify_minimum: have the server check each converged answer is a local minimum (about one
+                factorization more per frame): summary.minimum is "minimum", "not_a_minimum" or "not_checked".
         """
         character_id = self.resolve(character_id)
         request = pb.SolveRequest(
             character_id=character_id, colliders=list(colliders),
             options=pb.SolveOptions(residual_tolerance=float(tolerance), max_iterations=int(max_iterations),
-                                    linear=bool(linear), with_normals=bool(normals)),
+                                    linear=bool(linear), with_normals=bool(normals),
+                                    certify_minimum=bool(certify_minimum)),
             frames=_frame_requests(self._by_position(character_id, weights), collider_transforms, pins))
         call = self._solves.Solve(request, timeout=self.timeout, metadata=self._metadata(character_id))
         try:
