@@ -93,6 +93,13 @@ s=$(date +%s)
 build_args=(--format docker --pull=never --build-arg "BASE=$base_image" --ignorefile deploy/containerignore
             -f deploy/Dockerfile -t "$image")
 [ "${NO_CACHE:-0}" = 1 ] && build_args+=(--no-cache)
+# The host's compiler cache, mounted for the image's build step only (never part of the image): with the host's
+# CCACHE_COMPILERCHECK=content (.ci/run sets it), the objects of the host's release build are reused.
+if command -v ccache >/dev/null; then
+  ccache_dir=$(ccache -k cache_dir)
+  mkdir -p "$ccache_dir"
+  build_args+=(-v "$ccache_dir:/ccache")
+fi
 echo "test-farm: podman build ${build_args[*]} ."
 podman build "${build_args[@]}" . || die "podman build failed"
 timing_build=$(( $(date +%s) - s ))
