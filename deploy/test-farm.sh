@@ -99,6 +99,9 @@ if command -v ccache >/dev/null; then
   ccache_dir=$(ccache -k cache_dir)
   mkdir -p "$ccache_dir"
   build_args+=(-v "$ccache_dir:/ccache")
+  # ccache hashes these locale variables too: the image's compiler runs with the host's.
+  host_locale=$(env | grep -E '^(LANG|LC_ALL|LC_CTYPE|LC_MESSAGES)=' | tr '\n' ' ' || true)
+  build_args+=(--build-arg "HOST_LOCALE=$host_locale")
 fi
 echo "test-farm: podman build ${build_args[*]} ."
 podman build "${build_args[@]}" . || die "podman build failed"
