@@ -277,7 +277,10 @@ int main(int argc, char** argv) {
   app.add_option("--path-max-samples", settings.rig.path_max_samples, "samples kept per target")
       ->check(CLI::Range(4, 1024));
   app.add_option("--path-tolerance", settings.rig.path_tolerance, "certified midpoint error, of the diagonal");
+  std::string linear_solver = ToString(settings.rig.linear_solver);
+  app.add_option("--linear-solver", linear_solver, "sparse Cholesky backend: cholmod, mumps or eigen");
   CLI11_PARSE(app, argc, argv);
+  settings.rig.linear_solver = springblend::LinearSolverTypeFromString(linear_solver);
   if (settings.shared.empty()) settings.shared = settings.repo / ".." / "shared" / "meshes";
   if (!rows.empty()) {
     settings.rows.clear();

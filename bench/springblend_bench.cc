@@ -59,6 +59,8 @@ double MsSince(Clock::time_point start) {
 
 // --residual-tolerance / --step-tolerance override the measured methods' (and the baseline's) tolerances.
 std::optional<double> g_residual_tolerance, g_step_tolerance;
+// --linear-solver: the rigs' sparse Cholesky backend (RigOptions::linear_solver).
+LinearSolverType g_linear_solver = RigOptions{}.linear_solver;
 SolveOptions WithTolerances(SolveOptions options) {
   if (g_residual_tolerance) options.residual_tolerance = *g_residual_tolerance;
   if (g_step_tolerance) options.step_tolerance = *g_step_tolerance;
@@ -384,7 +386,9 @@ std::shared_ptr<const Rig> BuildRig(const RowSpec& spec, RowResult* result) {
   malloc_trim(0);
   const std::optional<double> before = StatusMb("VmRSS");
   const auto start = Clock::now();
-  auto rig = Rig::Build(std::move(rest), std::move(targets));
+  RigOptions rig_options;
+  rig_options.linear_solver = g_linear_solver;
+  auto rig = Rig::Build(std::move(rest), std::move(targets), rig_options);
   result->build_ms = MsSince(start);
   malloc_trim(0);
   const std::optional<double> after = StatusMb("VmRSS");
@@ -974,10 +978,18 @@ int Main(int argc, char** argv) {
       ->delimiter(',');
   app.add_option("--residual-tolerance", g_residual_tolerance, "override SolveOptions::residual_tolerance");
   app.add_option("--step-tolerance", g_step_tolerance, "override SolveOptions::step_tolerance");
+  std::string linear_solver = ToString(g_linear_solver);
+  app.add_option("--linear-solver", linear_solver, "sparse Cholesky backend: cholmod, mumps or eigen");
   try {
     app.parse(argc, argv);
   } catch (const CLI::ParseError& e) {
     return app.exit(e) == 0 ? 0 : 2;
+  }
+  try {
+    g_linear_solver = LinearSolverTypeFromString(linear_solver);
+  } catch (const std::exception& e) {
+    std::cerr << "springblend-bench: " << e.what() << "\n";
+    return 2;
   }
   if (settings.quick && steps->count() == 0) settings.steps = 6;
   if (settings.shared.empty()) settings.shared = settings.repo / ".." / "shared" / "meshes";

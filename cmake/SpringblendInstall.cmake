@@ -18,7 +18,7 @@ install(EXPORT springblendGeometryTargets NAMESPACE springblend:: DESTINATION ${
 if(SPRINGBLEND_BUILD_SOLVER)
   list(APPEND SPRINGBLEND_INSTALLED_PARTS solver)
   install(DIRECTORY ${PROJECT_SOURCE_DIR}/solver/include/ DESTINATION ${CMAKE_INSTALL_INCLUDEDIR})
-  install(TARGETS springblend_solver springblend_cholmod EXPORT springblendSolverTargets)
+  install(TARGETS springblend_solver springblend_cholmod springblend_mumps EXPORT springblendSolverTargets)
   install(EXPORT springblendSolverTargets NAMESPACE springblend:: DESTINATION ${SPRINGBLEND_CMAKE_DIR})
   install(TARGETS springblend-tetgen DESTINATION ${CMAKE_INSTALL_LIBEXECDIR}/springblend)
 endif()

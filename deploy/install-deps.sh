@@ -10,7 +10,7 @@ set -euo pipefail
 packages=(
   build-essential cmake ninja-build pkg-config git ca-certificates
   libeigen3-dev libopenmesh-dev libtet1.5-dev libcgal-dev libgmp-dev libmpfr-dev
-  libsuitesparse-dev libopenblas-dev
+  libsuitesparse-dev libopenblas-dev libmumps-seq-dev
   libspdlog-dev libfmt-dev libcli11-dev nlohmann-json3-dev libtbb-dev
   libgrpc++-dev libprotobuf-dev protobuf-compiler protobuf-compiler-grpc libssl-dev
   libgtest-dev libgmock-dev libbenchmark-dev

@@ -36,6 +36,7 @@ const char* ToString(LinearSolverType type) {
   switch (type) {
     case LinearSolverType::kCholmodSupernodal: return "cholmod";
     case LinearSolverType::kEigenSimplicial: return "eigen";
+    case LinearSolverType::kMumpsSingle: return "mumps";
   }
   return "unknown";
 }
@@ -43,7 +44,8 @@ const char* ToString(LinearSolverType type) {
 LinearSolverType LinearSolverTypeFromString(const std::string& name) {
   if (name == "cholmod") return LinearSolverType::kCholmodSupernodal;
   if (name == "eigen") return LinearSolverType::kEigenSimplicial;
-  throw Error(ErrorCode::kInvalidInput, "unknown linear solver '" + name + "' (use cholmod or eigen)");
+  if (name == "mumps") return LinearSolverType::kMumpsSingle;
+  throw Error(ErrorCode::kInvalidInput, "unknown linear solver '" + name + "' (use cholmod, mumps or eigen)");
 }
 
 const char* ToString(BoundaryMode mode) {

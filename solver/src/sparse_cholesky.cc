@@ -1,11 +1,14 @@
 #include "sparse_cholesky.h"
 
 #include <cholmod.h>
+#include <smumps_c.h>
 
 #include <Eigen/Sparse>
 #include <Eigen/SparseCholesky>
 #include <algorithm>
 #include <cstring>
+#include <mutex>
+#include <string>
 #include <vector>
 
 #include "springblend/error.h"
@@ -119,6 +122,177 @@ class CholmodCholesky final : public SparseCholesky {
   cholmod_dense* work_e_ = nullptr;
 };
 
+// MUMPS 5.5 keeps state in Fortran modules (its load-balancing module among them: two factorizations at once
+// on two threads fail in SMUMPS_LOAD_INIT), so it is not safe on several threads even with one instance per
+// thread; Debian 12 ships 5.5.1. Every call into it takes this lock: the rest of a solve still runs in parallel.
+std::mutex& MumpsLock() {
+  static std::mutex lock;
+  return lock;
+}
+
+// MUMPS, multifrontal, in single precision and sequential (Debian's libmumps-seq: a dummy MPI, no OpenMP;
+// BLAS 3 on OpenBLAS). Its factor is accurate to about 1e-7 to 1e-4 of a solve's size: a Newton step or a
+// preconditioner, never an answer (the convergence test reads the forces in double). The ordering is CHOLMOD's:
+// deterministic, so a frame's answer does not depend on the run; a clone reuses it.
+// Measured on the face (docs/benchmark.md, "Linear algebra"): no faster than CHOLMOD here. A factorization
+// that meets a negative pivot runs to the end (CHOLMOD stops at the first), solves are slower, and calls
+// serialize across threads; so CHOLMOD stays the default and this one is there to be measured.
+class MumpsSingleCholesky final : public SparseCholesky {
+ public:
+  MumpsSingleCholesky() {
+    id_.comm_fortran = kUseCommWorld;
+    id_.par = 1;  // the host works (the only process)
+    id_.sym = 1;  // symmetric positive definite: no pivoting, a non-positive pivot is an error
+    Call(kInit, "initialise");
+    Quiet();
+  }
+  ~MumpsSingleCholesky() override {
+    id_.job = kEnd;
+    const std::lock_guard<std::mutex> hold(MumpsLock());
+    smumps_c(&id_);
+  }
+  MumpsSingleCholesky(const MumpsSingleCholesky&) = delete;
+  MumpsSingleCholesky& operator=(const MumpsSingleCholesky&) = delete;
+
+  void Analyze(const SymmetricPattern& pattern) override {
+    pattern_ = &pattern;
+    const size_t entries = pattern.row_indices.size();
+    row_.resize(entries);
+    column_.resize(entries);
+    for (int j = 0; j < pattern.n; ++j) {
+      for (int k = pattern.column_starts[j]; k < pattern.column_starts[j + 1]; ++k) {
+        row_[k] = pattern.row_indices[k] + 1;  // 1-based coordinates
+        column_[k] = j + 1;
+      }
+    }
+    values_.assign(entries, 0.0f);
+    rhs_.assign(pattern.n, 0.0f);
+    id_.n = pattern.n;
+    id_.nnz = static_cast<MUMPS_INT8>(entries);
+    id_.irn = row_.data();
+    id_.jcn = column_.data();
+    id_.a = values_.data();
+    if (order_.empty()) order_ = CholmodOrder(pattern);
+    Icntl(7) = kGivenOrder;
+    id_.perm_in = order_.data();
+    Icntl(28) = 1;  // sequential analysis
+    Call(kAnalyse, "analyse the Hessian pattern");
+    // INFOG(20): the factor's estimated entries (negative: millions); RINFOG(1): the factorization's flops.
+    const long estimate = id_.infog[19];
+    factor_entries_ = estimate < 0 ? -estimate * 1000000L : estimate;
+    const double flops = id_.rinfog[0];
+    solves_per_factorization_ = factor_entries_ > 0 ? std::max(1.0, flops / (16.0 * factor_entries_)) : 1.0;
+  }
+
+  std::unique_ptr<SparseCholesky> Clone() const override {
+    auto copy = std::make_unique<MumpsSingleCholesky>();
+    copy->order_ = order_;
+    copy->Analyze(*pattern_);
+    return copy;
+  }
+
+  FactorStatus Factorize(const double* values) override {
+    for (size_t k = 0; k < values_.size(); ++k) values_[k] = static_cast<float>(values[k]);
+    id_.a = values_.data();
+    // Workspace is estimated at analysis; when the numbers need more, allow more and factor again.
+    for (int attempt = 0;; ++attempt) {
+      id_.job = kFactorize;
+      {
+        const std::lock_guard<std::mutex> hold(MumpsLock());
+        smumps_c(&id_);
+      }
+      const int status = id_.infog[0];
+      // SYM = 1 factors LDL^T without pivoting and does not stop at a non-positive pivot; INFOG(12) counts
+      // the negative ones, and a zero pivot is an error (-10).
+      if (status >= 0) return id_.infog[11] > 0 ? FactorStatus::kNotPositiveDefinite : FactorStatus::kOk;
+      if (status == kNumericallySingular) return FactorStatus::kNotPositiveDefinite;
+      if ((status == kWorkspaceTooSmall || status == kIntegerWorkspaceTooSmall) && attempt < 4) {
+        Icntl(14) = std::max(Icntl(14), 20) * 2;
+        continue;
+      }
+      return FactorStatus::kFailed;
+    }
+  }
+
+  void Solve(const double* b, double* x) override {
+    const int n = pattern_->n;
+    for (int i = 0; i < n; ++i) rhs_[i] = static_cast<float>(b[i]);
+    id_.rhs = rhs_.data();
+    id_.nrhs = 1;
+    id_.lrhs = n;
+    Call(kSolve, "solve");
+    for (int i = 0; i < n; ++i) x[i] = rhs_[i];
+  }
+
+  long FactorNonzeros() const override { return factor_entries_; }
+  double SolvesPerFactorization() const override { return solves_per_factorization_; }
+
+ private:
+  static constexpr int kUseCommWorld = -987654;
+  static constexpr int kInit = -1, kEnd = -2, kAnalyse = 1, kFactorize = 2, kSolve = 3;
+  static constexpr int kGivenOrder = 1;
+  static constexpr int kNumericallySingular = -10, kWorkspaceTooSmall = -9, kIntegerWorkspaceTooSmall = -8;
+
+  // CHOLMOD's fill-reducing order for the pattern (the better of AMD and METIS by its own count, the same every
+  // run) as MUMPS's PERM_IN: position (1-based) of each variable in the pivot order. MUMPS's own AMD fills a
+  // volumetric rig's factor far more (the horse: factorizations 2.8 times CHOLMOD's time).
+  static std::vector<MUMPS_INT> CholmodOrder(const SymmetricPattern& pattern) {
+    cholmod_common common{};
+    cholmod_start(&common);
+    common.print = 0;
+    common.error_handler = nullptr;
+    cholmod_sparse a{};
+    a.nrow = a.ncol = pattern.n;
+    a.nzmax = pattern.row_indices.size();
+    a.p = const_cast<int*>(pattern.column_starts.data());  // NOLINT: read only
+    a.i = const_cast<int*>(pattern.row_indices.data());    // NOLINT: read only
+    a.stype = 1;
+    a.itype = CHOLMOD_INT;
+    a.xtype = CHOLMOD_PATTERN;
+    a.dtype = CHOLMOD_DOUBLE;
+    a.sorted = a.packed = 1;
+    cholmod_factor* factor = cholmod_analyze(&a, &common);
+    std::vector<MUMPS_INT> position;
+    if (factor != nullptr) {
+      const int* perm = static_cast<const int*>(factor->Perm);
+      position.assign(pattern.n, 0);
+      for (int k = 0; k < pattern.n; ++k) position[perm[k]] = k + 1;
+      cholmod_free_factor(&factor, &common);
+    }
+    cholmod_finish(&common);
+    if (position.empty()) throw Error(ErrorCode::kNumerical, "CHOLMOD could not order the Hessian pattern for MUMPS");
+    return position;
+  }
+
+  // ICNTL(i), 1-based as MUMPS's guide numbers them.
+  MUMPS_INT& Icntl(int i) { return id_.icntl[i - 1]; }
+  void Quiet() {
+    Icntl(1) = -1;  // error messages
+    Icntl(2) = -1;  // diagnostics
+    Icntl(3) = -1;  // global information
+    Icntl(4) = 0;   // no printing at all
+  }
+  void Call(int job, const char* what) {
+    id_.job = job;
+    {
+      const std::lock_guard<std::mutex> hold(MumpsLock());
+      smumps_c(&id_);
+    }
+    if (id_.infog[0] < 0) {
+      throw Error(ErrorCode::kNumerical, std::string("MUMPS could not ") + what + " (INFOG(1) " +
+                                             std::to_string(id_.infog[0]) + ", INFOG(2) " +
+                                             std::to_string(id_.infog[1]) + ")");
+    }
+  }
+
+  SMUMPS_STRUC_C id_{};
+  const SymmetricPattern* pattern_ = nullptr;
+  std::vector<MUMPS_INT> row_, column_, order_;
+  std::vector<float> values_, rhs_;
+  long factor_entries_ = 0;
+  double solves_per_factorization_ = 1.0;
+};
+
 // Eigen's simplicial LLT: slow on these matrices, kept as an independent reference implementation.
 class EigenCholesky final : public SparseCholesky {
  public:
@@ -165,6 +339,8 @@ std::unique_ptr<SparseCholesky> SparseCholesky::Create(LinearSolverType type) {
       return std::make_unique<CholmodCholesky>();
     case LinearSolverType::kEigenSimplicial:
       return std::make_unique<EigenCholesky>();
+    case LinearSolverType::kMumpsSingle:
+      return std::make_unique<MumpsSingleCholesky>();
   }
   throw Error(ErrorCode::kInternal, "unknown linear solver type");
 }

@@ -29,9 +29,10 @@ const char* ToString(SpringKind kind);
 enum class LinearSolverType {
   kCholmodSupernodal,  // CHOLMOD supernodal Cholesky on OpenBLAS: the production backend
   kEigenSimplicial,    // Eigen's SimplicialLLT: a slow reference, kept for cross-checks
+  kMumpsSingle,        // MUMPS in single precision: a factor in about half the time, as a preconditioner
 };
 const char* ToString(LinearSolverType type);
-LinearSolverType LinearSolverTypeFromString(const std::string& name);  // "cholmod" | "eigen"
+LinearSolverType LinearSolverTypeFromString(const std::string& name);  // "cholmod" | "eigen" | "mumps"
 
 struct RigOptions {
   // Vertices whose position differs by at most this fraction of the rest shape's bounding-box diagonal
