@@ -2,9 +2,9 @@
 # The benchmark in one command: installs the dependencies (Debian 12), builds the bench configuration, runs
 # springblend-bench (every row whose meshes are present; per row the three solve methods side by side and the
 # direct-Newton baseline on the same frames), a perf profile of the face's solve (bench/profile.sh), the slider
-# drag through a server (bench/slider.py) and the service throughput script, and writes
-# bench-results/{bench.md,bench.json,ms_per_step.png,paths.md,paths.json,bake.md,bake.json,profile.md,slider.md,
-# slider.json,service.md}.
+# drag through a server (bench/slider.py), the service throughput script and the sparse backends' comparison
+# (bench/linear_algebra.sh), and writes bench-results/{bench.md,bench.json,ms_per_step.png,paths.md,paths.json,
+# bake.md,bake.json,profile.md,slider.md,slider.json,service.md,linear_algebra.md}.
 #   bash bench/run.sh [springblend-bench options, e.g. --rows face,horse --steps 36 --shared DIR]
 # Without --steps (or --quick) the sweep has 18 frames (17 solved per pass), so that the whole run, every row
 # with all three methods, the baseline and the reference, takes about 40 minutes on two cores (37 measured).
@@ -36,4 +36,6 @@ build/bench/bench/springblend-bake-bench --out bench-results --shared "$shared" 
 bash bench/profile.sh build/bench bench-results face 12 newton "$shared" || status=$?
 /usr/bin/python3 bench/slider.py --build build/bench --out bench-results --shared "$shared" || status=$?
 bash bench/service.sh build/bench bench-results
+# The sparse Cholesky backends (CHOLMOD, MUMPS single precision) on one frame per row.
+bash bench/linear_algebra.sh build/bench bench-results "$shared" || status=$?
 exit "$status"
