@@ -33,6 +33,7 @@
 #include <memory>
 #include <nlohmann/json.hpp>
 #include <optional>
+#include <random>
 #include <sstream>
 #include <string>
 #include <thread>
@@ -119,6 +120,31 @@ struct RowSpec {
   std::optional<PaperFigure> paper;
 };
 
+// A row of three of `pool`'s targets, drawn without repeats, and end weights w_i = s u_i / sum u (u_i in
+// [0.5, 1], the mix's total s in [0.6, 1], so the rest shape keeps a non-negative weight), from a generator
+// seeded by the row's name: the same row every run and on every machine (std::mt19937 is specified).
+RowSpec RandomMix(const std::string& name, const fs::path& dir, const std::string& rest,
+                  std::vector<std::string> pool, std::optional<PaperFigure> paper) {
+  std::seed_seq seed(name.begin(), name.end());
+  std::mt19937 random(seed);
+  const auto uniform = [&](double lo, double hi) {
+    return lo + (hi - lo) * (static_cast<double>(random() - std::mt19937::min()) /
+                             static_cast<double>(std::mt19937::max() - std::mt19937::min()));
+  };
+  RowSpec spec{name, dir, rest, {}, {}, paper};
+  double sum = 0.0;
+  for (int k = 0; k < 3 && !pool.empty(); ++k) {
+    const size_t pick = static_cast<size_t>(random() % pool.size());
+    spec.targets.push_back(pool[pick]);
+    pool.erase(pool.begin() + static_cast<std::ptrdiff_t>(pick));
+    spec.end_weights.push_back(uniform(0.5, 1.0));
+    sum += spec.end_weights.back();
+  }
+  const double total = uniform(0.6, 1.0);
+  for (double& w : spec.end_weights) w *= total / sum;
+  return spec;
+}
+
 std::vector<RowSpec> AllRows(const fs::path& repo, const fs::path& shared) {
   const fs::path data = repo / "tests" / "data";
   const PaperFigure face{40.11, 8.1, 65.1};
@@ -137,6 +163,21 @@ std::vector<RowSpec> AllRows(const fs::path& repo, const fs::path& shared) {
        face},
       {"horse", shared / "horse", "horse-reference.obj", {"horse-01.obj"}, {1.0}, PaperFigure{81.36, 8.5, 96.1}},
       {"cat", shared / "cat", "cat-reference.obj", {"cat-01.obj"}, {1.0}, PaperFigure{67.58, 7.3, 81.7}},
+      // Random mixes (the mixes issue: more than the five-expression face): three targets and their end
+      // weights drawn from a generator seeded by the row's name, the same every run.
+      RandomMix("face-random", shared / "face6706", "generic_neutral_mesh.obj",
+                {"jawOpen.obj", "mouthSmile_L.obj", "mouthSmile_R.obj", "eyeBlink_L.obj", "eyeBlink_R.obj",
+                 "browInnerUp_L.obj", "browInnerUp_R.obj", "browDown_L.obj", "browDown_R.obj", "cheekPuff_L.obj",
+                 "cheekPuff_R.obj"},
+                face),
+      RandomMix("horse-random", shared / "horse", "horse-reference.obj",
+                {"horse-01.obj", "horse-02.obj", "horse-03.obj", "horse-04.obj", "horse-05.obj", "horse-06.obj",
+                 "horse-07.obj", "horse-08.obj", "horse-09.obj", "horse-10.obj"},
+                PaperFigure{81.36, 8.5, 96.1}),
+      RandomMix("cat-random", shared / "cat", "cat-reference.obj",
+                {"cat-01.obj", "cat-02.obj", "cat-03.obj", "cat-04.obj", "cat-05.obj", "cat-06.obj", "cat-07.obj",
+                 "cat-08.obj", "cat-09.obj"},
+                PaperFigure{67.58, 7.3, 81.7}),
   };
 }
 
@@ -260,6 +301,7 @@ struct MethodResult {
 struct RowResult {
   std::string name;
   std::optional<PaperFigure> paper;
+  std::string sweep_end;  // the sweep's last frame: each target with its weight
   bool skipped = false;
   bool failed = false;  // an exception ended the row; what was measured before it is kept
   std::string note;
@@ -444,6 +486,9 @@ void MeasureRow(const RowSpec& spec, const Settings& settings, RowResult* result
 void RunRow(const RowSpec& spec, const Settings& settings, RowResult& result,
             const std::function<void()>& checkpoint) {
   result.name = spec.name;
+  for (size_t t = 0; t < spec.targets.size(); ++t) {
+    result.sweep_end += fmt::format("{}{} {:.3f}", t == 0 ? "" : ", ", spec.targets[t], spec.end_weights[t]);
+  }
   result.paper = spec.paper;
   if (const auto missing = MissingFile(spec)) {
     result.skipped = true;
@@ -714,6 +759,8 @@ std::string MarkdownReport(const Machine& machine, const Settings& settings, con
         "(vertices, springs).\n\n";
   md += Header(kRowColumns);
   for (const RowResult& row : rows) md += RowLine(row) + "\n";
+  md += "\nEach row's sweep ends at these weights (the rest shape takes 1 minus their sum):\n\n";
+  for (const RowResult& row : rows) md += fmt::format("- {}: {}\n", row.name, row.sweep_end);
   return md;
 }
 
@@ -962,7 +1009,8 @@ int Main(int argc, char** argv) {
   CLI::App app{"springblend-bench: per row and per solve method, the paper's sweep's frames solved alone and in "
                "order, against direct Newton and a tightly converged reference"};
   app.add_option("--rows", settings.rows,
-                 "comma-separated subset of: cylinder, cube, cheburashka, face, face-mix, horse, cat")
+                 "comma-separated subset of: cylinder, cube, cheburashka, face, face-mix, horse, cat, face-random, "
+                 "horse-random, cat-random (three targets each, drawn by a generator seeded with the row's name)")
       ->delimiter(',');
   CLI::Option* steps = app.add_option("--steps", settings.steps, "frames per sweep, including frame 0 (default 36)")
                            ->check(CLI::Range(2, 100000));
