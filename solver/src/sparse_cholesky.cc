@@ -234,8 +234,8 @@ class MumpsSingleCholesky final : public SparseCholesky {
   static constexpr int kNumericallySingular = -10, kWorkspaceTooSmall = -9, kIntegerWorkspaceTooSmall = -8;
 
   // CHOLMOD's fill-reducing order for the pattern (the better of AMD and METIS by its own count, the same every
-  // run) as MUMPS's PERM_IN: position (1-based) of each variable in the pivot order. MUMPS's own AMD fills a
-  // volumetric rig's factor far more (the horse: factorizations 2.8 times CHOLMOD's time).
+  // run) as MUMPS's PERM_IN: position (1-based) of each variable in the pivot order. Both backends then factor
+  // in the same order, so they differ only in kernels and precision (MUMPS's own orderings took about as long).
   static std::vector<MUMPS_INT> CholmodOrder(const SymmetricPattern& pattern) {
     cholmod_common common{};
     cholmod_start(&common);
