@@ -1027,18 +1027,14 @@ int Main(int argc, char** argv) {
   app.add_option("--residual-tolerance", g_residual_tolerance, "override SolveOptions::residual_tolerance");
   app.add_option("--step-tolerance", g_step_tolerance, "override SolveOptions::step_tolerance");
   std::string linear_solver = ToString(g_linear_solver);
-  app.add_option("--linear-solver", linear_solver, "sparse Cholesky backend: cholmod, mumps or eigen");
+  app.add_option("--linear-solver", linear_solver, "sparse Cholesky backend: cholmod, mumps or eigen")
+      ->check(CLI::IsMember({"cholmod", "mumps", "eigen"}));
   try {
     app.parse(argc, argv);
   } catch (const CLI::ParseError& e) {
     return app.exit(e) == 0 ? 0 : 2;
   }
-  try {
-    g_linear_solver = LinearSolverTypeFromString(linear_solver);
-  } catch (const std::exception& e) {
-    std::cerr << "springblend-bench: " << e.what() << "\n";
-    return 2;
-  }
+  g_linear_solver = LinearSolverTypeFromString(linear_solver);
   if (settings.quick && steps->count() == 0) settings.steps = 6;
   if (settings.shared.empty()) settings.shared = settings.repo / ".." / "shared" / "meshes";
   if (settings.methods.empty()) {

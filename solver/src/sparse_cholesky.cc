@@ -16,6 +16,24 @@
 namespace springblend::internal {
 namespace {
 
+// The pattern (and values, unless null) as a CHOLMOD matrix, without copying.
+cholmod_sparse CholmodView(const SymmetricPattern& pattern, const double* values) {
+  cholmod_sparse a{};
+  a.nrow = pattern.n;
+  a.ncol = pattern.n;
+  a.nzmax = pattern.row_indices.size();
+  a.p = const_cast<int*>(pattern.column_starts.data());  // NOLINT: read only
+  a.i = const_cast<int*>(pattern.row_indices.data());    // NOLINT: read only
+  a.x = const_cast<double*>(values);                     // NOLINT: read only
+  a.stype = 1;  // upper triangle stored
+  a.itype = CHOLMOD_INT;
+  a.xtype = values == nullptr ? CHOLMOD_PATTERN : CHOLMOD_REAL;
+  a.dtype = CHOLMOD_DOUBLE;
+  a.sorted = 1;
+  a.packed = 1;
+  return a;
+}
+
 // CHOLMOD, supernodal, on the system BLAS (OpenBLAS on Debian).
 class CholmodCholesky final : public SparseCholesky {
  public:
@@ -95,22 +113,7 @@ class CholmodCholesky final : public SparseCholesky {
   double SolvesPerFactorization() const override { return solves_per_factorization_; }
 
  private:
-  cholmod_sparse View(const double* values) const {
-    cholmod_sparse a{};
-    a.nrow = pattern_->n;
-    a.ncol = pattern_->n;
-    a.nzmax = pattern_->row_indices.size();
-    a.p = const_cast<int*>(pattern_->column_starts.data());  // NOLINT: read only
-    a.i = const_cast<int*>(pattern_->row_indices.data());    // NOLINT: read only
-    a.x = const_cast<double*>(values);                       // NOLINT: read only
-    a.stype = 1;  // upper triangle stored
-    a.itype = CHOLMOD_INT;
-    a.xtype = values == nullptr ? CHOLMOD_PATTERN : CHOLMOD_REAL;
-    a.dtype = CHOLMOD_DOUBLE;
-    a.sorted = 1;
-    a.packed = 1;
-    return a;
-  }
+  cholmod_sparse View(const double* values) const { return CholmodView(*pattern_, values); }
 
   // Mutable because lnz is read from it after analysis.
   mutable cholmod_common common_{};
@@ -146,11 +149,7 @@ class MumpsSingleCholesky final : public SparseCholesky {
     Call(kInit, "initialise");
     Quiet();
   }
-  ~MumpsSingleCholesky() override {
-    id_.job = kEnd;
-    const std::lock_guard<std::mutex> hold(MumpsLock());
-    smumps_c(&id_);
-  }
+  ~MumpsSingleCholesky() override { Run(kEnd); }
   MumpsSingleCholesky(const MumpsSingleCholesky&) = delete;
   MumpsSingleCholesky& operator=(const MumpsSingleCholesky&) = delete;
 
@@ -196,12 +195,7 @@ class MumpsSingleCholesky final : public SparseCholesky {
     id_.a = values_.data();
     // Workspace is estimated at analysis; when the numbers need more, allow more and factor again.
     for (int attempt = 0;; ++attempt) {
-      id_.job = kFactorize;
-      {
-        const std::lock_guard<std::mutex> hold(MumpsLock());
-        smumps_c(&id_);
-      }
-      const int status = id_.infog[0];
+      const int status = Run(kFactorize);
       // SYM = 1 factors LDL^T without pivoting and does not stop at a non-positive pivot; INFOG(12) counts
       // the negative ones, and a zero pivot is an error (-10).
       if (status >= 0) return id_.infog[11] > 0 ? FactorStatus::kNotPositiveDefinite : FactorStatus::kOk;
@@ -241,16 +235,7 @@ class MumpsSingleCholesky final : public SparseCholesky {
     cholmod_start(&common);
     common.print = 0;
     common.error_handler = nullptr;
-    cholmod_sparse a{};
-    a.nrow = a.ncol = pattern.n;
-    a.nzmax = pattern.row_indices.size();
-    a.p = const_cast<int*>(pattern.column_starts.data());  // NOLINT: read only
-    a.i = const_cast<int*>(pattern.row_indices.data());    // NOLINT: read only
-    a.stype = 1;
-    a.itype = CHOLMOD_INT;
-    a.xtype = CHOLMOD_PATTERN;
-    a.dtype = CHOLMOD_DOUBLE;
-    a.sorted = a.packed = 1;
+    cholmod_sparse a = CholmodView(pattern, nullptr);
     cholmod_factor* factor = cholmod_analyze(&a, &common);
     std::vector<MUMPS_INT> position;
     if (factor != nullptr) {
@@ -272,13 +257,16 @@ class MumpsSingleCholesky final : public SparseCholesky {
     Icntl(3) = -1;  // global information
     Icntl(4) = 0;   // no printing at all
   }
-  void Call(int job, const char* what) {
+  // One call into MUMPS, under the process-wide lock; returns INFOG(1) (negative: an error).
+  int Run(int job) {
     id_.job = job;
-    {
-      const std::lock_guard<std::mutex> hold(MumpsLock());
-      smumps_c(&id_);
-    }
-    if (id_.infog[0] < 0) {
+    const std::lock_guard<std::mutex> hold(MumpsLock());
+    smumps_c(&id_);
+    return id_.infog[0];
+  }
+  // Run, throwing on an error.
+  void Call(int job, const char* what) {
+    if (Run(job) < 0) {
       throw Error(ErrorCode::kNumerical, std::string("MUMPS could not ") + what + " (INFOG(1) " +
                                              std::to_string(id_.infog[0]) + ", INFOG(2) " +
                                              std::to_string(id_.infog[1]) + ")");

@@ -29,7 +29,7 @@ const char* ToString(SpringKind kind);
 enum class LinearSolverType {
   kCholmodSupernodal,  // CHOLMOD supernodal Cholesky on OpenBLAS: the production backend
   kEigenSimplicial,    // Eigen's SimplicialLLT: a slow reference, kept for cross-checks
-  kMumpsSingle,        // MUMPS in single precision: a factor in about half the time, as a preconditioner
+  kMumpsSingle,        // MUMPS in single precision, as a step and preconditioner: measured slower here
 };
 const char* ToString(LinearSolverType type);
 LinearSolverType LinearSolverTypeFromString(const std::string& name);  // "cholmod" | "eigen" | "mumps"
