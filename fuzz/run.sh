@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # Builds the libFuzzer targets (the `fuzz` preset: clang, ASan + UBSan) and runs each for a bounded time on a
 # seed corpus made from tests/data. Exits non-zero on any finding; crash inputs land in build/fuzz/findings/.
-#   bash fuzz/run.sh                 every target, 30 s each (what CI runs)
+#   bash fuzz/run.sh                 every target, 30 s each, as many at once as there are cores (CI: 20 s)
 #   FUZZ_SECONDS=3600 bash fuzz/run.sh mesh_loader_fuzzer    one target for an hour
 # The corpora in build/fuzz/corpus/ grow between runs; delete them to start over from the seeds.
 set -euo pipefail
@@ -37,16 +37,32 @@ printf '{"colliders": ["sphere:0,0,0,1"], "frames": [{"weights": [1, 0], "collid
 "$out/fuzz/make_fuzz_seeds" "$seeds/upload_assembler_fuzzer" "$seeds/solve_request_fuzzer" "$seeds/cache_file_fuzzer" \
   tests/data/cylinder/cylinder.obj
 
+# Each target runs in its own process, FUZZ_JOBS (default: the machine's cores) at a time; the reports follow in
+# the targets' order once all have run.
+run_target() {
+  local t="$1"
+  local corpus="$out/corpus/$t"
+  mkdir -p "$corpus"
+  local max_len=65536
+  if [ "$t" = mesh_loader_fuzzer ]; then max_len=8192; fi
+  local rc=0
+  "$out/fuzz/$t" -max_total_time="$seconds" -max_len="$max_len" -rss_limit_mb=2048 -timeout=20 -print_final_stats=1 \
+    -artifact_prefix="$out/findings/$t-" "$corpus" "$seeds/$t" > "$out/$t.log" 2>&1 || rc=$?
+  echo "$rc" > "$out/$t.status"
+}
+jobs_at_once="${FUZZ_JOBS:-$(nproc)}"
+for t in "${targets[@]}"; do
+  while [ "$(jobs -rp | wc -l)" -ge "$jobs_at_once" ]; do wait -n || true; done
+  echo "fuzz: $t for ${seconds} s"
+  rm -f "$out/$t.status"
+  run_target "$t" &
+done
+wait
 status=0
 for t in "${targets[@]}"; do
-  corpus="$out/corpus/$t"
-  mkdir -p "$corpus"
   log="$out/$t.log"
-  echo "fuzz: $t for ${seconds} s"
-  max_len=65536
-  if [ "$t" = mesh_loader_fuzzer ]; then max_len=8192; fi
-  if ! "$out/fuzz/$t" -max_total_time="$seconds" -max_len="$max_len" -rss_limit_mb=2048 -timeout=20 -print_final_stats=1 \
-      -artifact_prefix="$out/findings/$t-" "$corpus" "$seeds/$t" > "$log" 2>&1; then
+  corpus="$out/corpus/$t"
+  if [ "$(cat "$out/$t.status" 2>/dev/null)" != 0 ]; then
     echo "fuzz: $t FOUND A PROBLEM; see $log and $out/findings/"
     grep -E "ERROR|SUMMARY|runtime error|uncaught|Test unit written" "$log" | head -20
     status=1

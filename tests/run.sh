@@ -4,6 +4,8 @@
 #   PRESET=asan-ubsan bash tests/run.sh     the same under AddressSanitizer + UndefinedBehaviorSanitizer
 #   PRESET=tsan TESTS='Server|Thread' TARGETS='integration_server_test ...' bash tests/run.sh
 #                                           only the tests matching a regex (ctest -R), building only TARGETS
+#   CMAKE_ARGS='-DSPRINGBLEND_BUILD_CLI=OFF' ...
+#                                           extra configure arguments (kept in the build directory's cache)
 #   EXCLUDE_LABELS='slow|install' ...       leave out tests with these CTest labels (ctest -LE), or, with
 #   EXCLUDE_TESTS=REGEX, these tests (ctest -E); the sanitizer stages of .ci/run leave the long real-mesh
 #                                           cases to the release stage
@@ -16,7 +18,8 @@ preset="${PRESET:-release}"
 export ASAN_OPTIONS="${ASAN_OPTIONS:-detect_leaks=1:abort_on_error=0:halt_on_error=1}"
 export UBSAN_OPTIONS="${UBSAN_OPTIONS:-print_stacktrace=1:halt_on_error=1}"
 export TSAN_OPTIONS="${TSAN_OPTIONS:-halt_on_error=1:second_deadlock_stack=1:suppressions=$PWD/tests/tsan.supp}"
-cmake --preset "$preset"
+read -r -a configure_args <<< "${CMAKE_ARGS:-}"
+cmake --preset "$preset" "${configure_args[@]}"
 targets=()
 if [ -n "${TARGETS:-}" ]; then read -r -a names <<< "$TARGETS"; targets=(--target "${names[@]}"); fi
 cmake --build --preset "$preset" -j "$(nproc)" "${targets[@]}"

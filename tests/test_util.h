@@ -36,6 +36,16 @@ inline RigOptions TestRigOptions() {
   return options;
 }
 
+// Rig options for tests whose answers do not depend on where a frame's solve starts (the rig's structure and
+// summary, boundary conditions, weight semantics, masks, pins, the linear-algebra backends): no target paths,
+// so frames start from the linear blend and a rig builds in a tenth of the time (the two-target cylinder: 0.6
+// against 6.8 s under ASan, 0.13 against 1.0 s in release).
+inline RigOptions NoPathsRigOptions() {
+  RigOptions options = TestRigOptions();
+  options.target_paths = false;
+  return options;
+}
+
 inline std::shared_ptr<const Rig> LoadRig(const std::string& rest, const std::vector<std::string>& targets,
                                           const RigOptions& options = TestRigOptions()) {
   std::vector<TriangleMesh> meshes;

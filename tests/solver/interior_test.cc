@@ -154,7 +154,7 @@ TEST(CappedCylinder, HolesAreClosedAndBendsReachTheirTargets) {
 }
 
 TEST(RigSummary, ReportsWhatThePapersTableReports) {
-  auto rig = LoadRig("cube/cube.obj", {"cube/poses-1_cube-4.obj"});
+  auto rig = LoadRig("cube/cube.obj", {"cube/poses-1_cube-4.obj"}, testing::NoPathsRigOptions());
   const RigSummary& s = rig->summary();
   EXPECT_EQ(s.surface_vertices, 1538);
   EXPECT_EQ(s.vertices, s.surface_vertices + s.interior_vertices);
@@ -252,7 +252,7 @@ TEST(Shell, AnOpenSurfaceWithoutInteriorGetsAnInnerLayerAndStillReproducesItsTar
 }
 
 TEST(Pins, APinnedVertexSitsExactlyAtItsPinAndItsNeighboursFollow) {
-  auto rig = LoadRig("cube/cube.obj", {"cube/poses-1_cube-4.obj"});
+  auto rig = LoadRig("cube/cube.obj", {"cube/poses-1_cube-4.obj"}, testing::NoPathsRigOptions());
   Solver solver(rig);
   Points free_x, pinned_x;
   ASSERT_TRUE(solver.Solve({{0.3}}, &free_x).converged());

@@ -68,7 +68,7 @@ TEST(ProductionRig, InbetweenIsReproducedAtItsWeight) {
 }
 
 TEST(ProductionRig, ShapeWeightsAreHatFunctionsExtrapolatedAtTheEnds) {
-  const auto rig = CylinderWithInbetween();
+  const auto rig = CylinderWithInbetween(testing::NoPathsRigOptions());
   // Shapes: 0 = bend at 1, 1 = the in-between at 0.5.
   EXPECT_THAT(rig->ShapeWeights({0.0}), ElementsAre(0.0, 0.0));
   EXPECT_THAT(rig->ShapeWeights({0.25}), ElementsAre(0.0, 0.5));
@@ -112,16 +112,16 @@ TEST(ProductionRig, AllZeroMaskTurnsTheTargetOffAndAllOneChangesNothing) {
   std::vector<TargetSpec> zero;
   zero.push_back(Spec("bend", "cylinder/poses-1_cylinder-4.obj"));
   zero[0].mask.assign(420, 0.0);
-  const auto off = Rig::Build(Rest("cylinder/cylinder.obj"), std::move(zero));
+  const auto off = Rig::Build(Rest("cylinder/cylinder.obj"), std::move(zero), testing::NoPathsRigOptions());
   EXPECT_LE(MaxDistance(SolveFrame(off, {1.0}), off->rest().vertices), kShapeTolerance * Diagonal(*off));
 
   std::vector<TargetSpec> one;
   one.push_back(Spec("bend", "cylinder/poses-1_cylinder-4.obj"));
   one[0].mask.assign(420, 1.0);
-  const auto masked = Rig::Build(Rest("cylinder/cylinder.obj"), std::move(one));
+  const auto masked = Rig::Build(Rest("cylinder/cylinder.obj"), std::move(one), testing::NoPathsRigOptions());
   std::vector<TargetSpec> plain;
   plain.push_back(Spec("bend", "cylinder/poses-1_cylinder-4.obj"));
-  const auto unmasked = Rig::Build(Rest("cylinder/cylinder.obj"), std::move(plain));
+  const auto unmasked = Rig::Build(Rest("cylinder/cylinder.obj"), std::move(plain), testing::NoPathsRigOptions());
   for (double w : {0.5, 1.0}) {
     EXPECT_LE(MaxDistance(SolveFrame(masked, {w}), SolveFrame(unmasked, {w})), kShapeTolerance * Diagonal(*masked))
         << "weight " << w;
@@ -134,10 +134,10 @@ TEST(ProductionRig, PartialMaskScalesOffsetsAndRestLengthChanges) {
   std::vector<double> mask(420);
   for (size_t v = 0; v < mask.size(); ++v) mask[v] = v % 3 == 0 ? 1.0 : (v % 3 == 1 ? 0.5 : 0.0);
   specs[0].mask = mask;
-  const auto rig = Rig::Build(Rest("cylinder/cylinder.obj"), std::move(specs));
+  const auto rig = Rig::Build(Rest("cylinder/cylinder.obj"), std::move(specs), testing::NoPathsRigOptions());
   std::vector<TargetSpec> plain;
   plain.push_back(Spec("bend", "cylinder/poses-1_cylinder-4.obj"));
-  const auto unmasked = Rig::Build(Rest("cylinder/cylinder.obj"), std::move(plain));
+  const auto unmasked = Rig::Build(Rest("cylinder/cylinder.obj"), std::move(plain), testing::NoPathsRigOptions());
   const Points& rest = rig->rest().vertices;
   const Points& full = unmasked->target(0).vertices;
   for (int v = 0; v < 420; ++v) {

@@ -18,7 +18,7 @@ using testing::DataPath;
 using testing::LoadRig;
 
 TEST(Rig, CylinderSpringsFollowTheMeshTopology) {
-  RigOptions surface_only;
+  RigOptions surface_only = testing::NoPathsRigOptions();
   surface_only.interior = false;
   auto rig = LoadRig("cylinder/cylinder.obj", {"cylinder/poses-2_cylinder-1.obj"}, surface_only);
   const RigSummary& s = rig->summary();
@@ -43,7 +43,7 @@ TEST(Rig, CylinderSpringsFollowTheMeshTopology) {
 }
 
 TEST(Rig, NoSpringIsDuplicated) {
-  auto rig = LoadRig("cube/cube.obj", {"cube/poses-1_cube-1.obj"});
+  auto rig = LoadRig("cube/cube.obj", {"cube/poses-1_cube-1.obj"}, testing::NoPathsRigOptions());
   std::set<std::pair<int, int>> pairs;
   for (int q = 0; q < rig->num_springs(); ++q) {
     EXPECT_TRUE(pairs.insert({rig->spring_a()[q], rig->spring_b()[q]}).second);
@@ -53,15 +53,15 @@ TEST(Rig, NoSpringIsDuplicated) {
 
 TEST(Rig, DetectsStaticVerticesAcrossAllTargets) {
   // poses-2_cylinder-1 keeps one end still: 194 vertices move less than 1e-6 of the diagonal.
-  auto one = LoadRig("cylinder/cylinder.obj", {"cylinder/poses-2_cylinder-1.obj"});
+  auto one = LoadRig("cylinder/cylinder.obj", {"cylinder/poses-2_cylinder-1.obj"}, testing::NoPathsRigOptions());
   EXPECT_EQ(one->summary().static_vertices, 194);
   EXPECT_EQ(one->boundary_mode(), BoundaryMode::kFixedVertices);
   // With a target that moves everything, nothing is static and the rig floats.
   auto two = LoadRig("cylinder/cylinder.obj",
-                     {"cylinder/poses-2_cylinder-1.obj", "cylinder/poses-1_cylinder-1.obj"});
+                     {"cylinder/poses-2_cylinder-1.obj", "cylinder/poses-1_cylinder-1.obj"}, testing::NoPathsRigOptions());
   EXPECT_EQ(two->summary().static_vertices, 0);
   EXPECT_EQ(two->boundary_mode(), BoundaryMode::kAnchored);  // the internal anchor holds it
-  RigOptions surface_only;
+  RigOptions surface_only = testing::NoPathsRigOptions();
   surface_only.interior = false;
   auto floating = LoadRig("cylinder/cylinder.obj",
                           {"cylinder/poses-2_cylinder-1.obj", "cylinder/poses-1_cylinder-1.obj"}, surface_only);
@@ -72,7 +72,7 @@ TEST(Rig, DetectsStaticVerticesAcrossAllTargets) {
 }
 
 TEST(Rig, UserFixedVerticesAreBoundaryConditions) {
-  RigOptions options;
+  RigOptions options = testing::NoPathsRigOptions();
   options.fixed_vertices = {5, 100, 399};
   auto rig = LoadRig("cylinder/cylinder.obj", {"cylinder/poses-1_cylinder-1.obj"}, options);
   EXPECT_EQ(rig->fixed_vertices(), (std::vector<int>{5, 100, 399}));

@@ -146,11 +146,11 @@ TEST(Blend, KeepsEdgeLengthsFarCloserToTheBlendedRestLengthsThanLinearBlending) 
 // Every sparse Cholesky backend reaches the same equilibrium; MUMPS factors in single precision, and the
 // answer still passes the convergence test in double.
 TEST(Blend, EveryBackendAgrees) {
-  auto cholmod = LoadRig("cylinder/cylinder.obj", {"cylinder/poses-2_cylinder-3.obj"});
+  auto cholmod = LoadRig("cylinder/cylinder.obj", {"cylinder/poses-2_cylinder-3.obj"}, testing::NoPathsRigOptions());
   Points a;
   ASSERT_TRUE(Solver(cholmod).Solve({{0.6}}, &a).converged());
   for (const LinearSolverType type : {LinearSolverType::kEigenSimplicial, LinearSolverType::kMumpsSingle}) {
-    RigOptions options;
+    RigOptions options = testing::NoPathsRigOptions();
     options.linear_solver = type;
     auto other = LoadRig("cylinder/cylinder.obj", {"cylinder/poses-2_cylinder-3.obj"}, options);
     Points b;
@@ -283,7 +283,7 @@ TEST(Blend, LinearOptionGivesThePlainLinearBlendshape) {
 }
 
 TEST(Blend, PartiallyFixedRigSolves) {
-  RigOptions options;
+  RigOptions options = testing::NoPathsRigOptions();
   options.fixed_vertices = {10};
   auto rig = LoadRig("cylinder/cylinder.obj", {"cylinder/poses-2_cylinder-1.obj"}, options);
   ASSERT_EQ(rig->boundary_mode(), BoundaryMode::kFixedVertices);  // the static end already fixes it
