@@ -1,18 +1,19 @@
 #!/usr/bin/env bash
 # The sparse Cholesky backends side by side in one run: one frame per row solved alone from the linear blend
 # (no target paths, so every Newton step factors or solves with the backend), at weight 0.55, with CHOLMOD
-# (double, the default) and MUMPS (single precision). Per row and backend: factorizations, factorize ms, solve
+# (the default: double factor, preconditioning with it rounded to single precision), CHOLMOD preconditioning
+# with the double factor (cholmod-double) and MUMPS (single precision). Per row and backend: factorizations, factorize ms, solve
 # ms (the triangular solves and conjugate gradients), Newton iterations, energy and wall time, as markdown.
 # Rows: the bundled ICT face (jawOpen) always; the horse and the cat when the shared meshes are present.
 #   bash bench/linear_algebra.sh [BUILD_DIR (default build/bench)] [OUT_DIR (default bench-results)] [SHARED]
-# Environment: WEIGHT (default 0.55), BACKENDS (default "cholmod mumps").
+# Environment: WEIGHT (default 0.55), BACKENDS (default "cholmod cholmod-double mumps").
 set -euo pipefail
 cd "$(dirname "$0")/.."
 build="${1:-build/bench}"
 out="${2:-bench-results}"
 shared="${3:-$(cd .. && pwd)/shared/meshes}"
 weight="${WEIGHT:-0.55}"
-backends="${BACKENDS:-cholmod mumps}"
+backends="${BACKENDS:-cholmod cholmod-double mumps}"
 cli="$build/client/springblend"
 [ -x "$cli" ] || { echo "linear_algebra.sh: $cli is missing; build the bench preset first (see README, Benchmark)" >&2; exit 2; }
 mkdir -p "$out"

@@ -1027,8 +1027,8 @@ int Main(int argc, char** argv) {
   app.add_option("--residual-tolerance", g_residual_tolerance, "override SolveOptions::residual_tolerance");
   app.add_option("--step-tolerance", g_step_tolerance, "override SolveOptions::step_tolerance");
   std::string linear_solver = ToString(g_linear_solver);
-  app.add_option("--linear-solver", linear_solver, "sparse Cholesky backend: cholmod, mumps or eigen")
-      ->check(CLI::IsMember({"cholmod", "mumps", "eigen"}));
+  app.add_option("--linear-solver", linear_solver, "sparse Cholesky backend: cholmod, cholmod-double, mumps or eigen")
+      ->check(CLI::IsMember({"cholmod", "cholmod-double", "mumps", "eigen"}));
   try {
     app.parse(argc, argv);
   } catch (const CLI::ParseError& e) {

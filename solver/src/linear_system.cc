@@ -75,12 +75,27 @@ FactorStatus LinearSystem::Factorize(const std::vector<double>& full_values) {
 }
 
 void LinearSystem::Solve(const Eigen::VectorXd& r, const std::vector<char>& held, Eigen::VectorXd* z) {
+  Apply(r, held, z, false);
+}
+
+void LinearSystem::Precondition(const Eigen::VectorXd& r, const std::vector<char>& held, Eigen::VectorXd* z) {
+  Apply(r, held, z, true);
+}
+
+void LinearSystem::Apply(const Eigen::VectorXd& r, const std::vector<char>& held, Eigen::VectorXd* z,
+                         bool rounded) {
   if (kept_reduced_) {
     Reduced& red = *reduced_;
     for (size_t i = 0; i < red.dofs.size(); ++i) red.rhs[static_cast<Eigen::Index>(i)] = r[red.dofs[i]];
-    red.cholesky->Solve(red.rhs.data(), red.solution.data());
+    if (rounded) {
+      red.cholesky->Precondition(red.rhs.data(), red.solution.data());
+    } else {
+      red.cholesky->Solve(red.rhs.data(), red.solution.data());
+    }
     z->setZero();
     for (size_t i = 0; i < red.dofs.size(); ++i) (*z)[red.dofs[i]] = red.solution[static_cast<Eigen::Index>(i)];
+  } else if (rounded) {
+    cholesky_->Precondition(r.data(), z->data());
   } else {
     cholesky_->Solve(r.data(), z->data());
   }

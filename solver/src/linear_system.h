@@ -27,6 +27,9 @@ class LinearSystem {
   FactorStatus Factorize(const std::vector<double>& full_values);
   // z = A^{-1} r with the kept factor, restricted to the free coordinates of `held` (zero on held ones).
   void Solve(const Eigen::VectorXd& r, const std::vector<char>& held, Eigen::VectorXd* z);
+  // The same with the factor rounded to single precision where the backend keeps such a copy (CHOLMOD):
+  // for preconditioning conjugate gradients only, never for a step taken as it is.
+  void Precondition(const Eigen::VectorXd& r, const std::vector<char>& held, Eigen::VectorXd* z);
 
   bool has_factor() const { return kept_; }
   // Whether the kept factor can precondition a system with these held coordinates: the full system's
@@ -39,6 +42,7 @@ class LinearSystem {
 
  private:
   struct Reduced;
+  void Apply(const Eigen::VectorXd& r, const std::vector<char>& held, Eigen::VectorXd* z, bool rounded);
   const SymmetricPattern& full_;
   LinearSolverType type_;
   std::unique_ptr<SparseCholesky> cholesky_;  // the full system

@@ -88,7 +88,7 @@ ConjugateGradientsStatus InexactNewton::ConjugateGradientStep(const MinimizerPro
         if (laplacian) {
           problem.laplacian->Apply(r, held, z);
         } else {
-          problem.linear->Solve(r, held, z);
+          problem.linear->Precondition(r, held, z);
         }
       },
       force, cg, &step_, &summary->cg_iterations);

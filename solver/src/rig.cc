@@ -35,6 +35,7 @@ const char* ToString(SpringKind kind) {
 const char* ToString(LinearSolverType type) {
   switch (type) {
     case LinearSolverType::kCholmodSupernodal: return "cholmod";
+    case LinearSolverType::kCholmodDouble: return "cholmod-double";
     case LinearSolverType::kEigenSimplicial: return "eigen";
     case LinearSolverType::kMumpsSingle: return "mumps";
   }
@@ -43,9 +44,10 @@ const char* ToString(LinearSolverType type) {
 
 LinearSolverType LinearSolverTypeFromString(const std::string& name) {
   if (name == "cholmod") return LinearSolverType::kCholmodSupernodal;
+  if (name == "cholmod-double") return LinearSolverType::kCholmodDouble;
   if (name == "eigen") return LinearSolverType::kEigenSimplicial;
   if (name == "mumps") return LinearSolverType::kMumpsSingle;
-  throw Error(ErrorCode::kInvalidInput, "unknown linear solver '" + name + "' (use cholmod, mumps or eigen)");
+  throw Error(ErrorCode::kInvalidInput, "unknown linear solver '" + name + "' (use cholmod, cholmod-double, mumps or eigen)");
 }
 
 const char* ToString(BoundaryMode mode) {

@@ -32,6 +32,10 @@ class SparseCholesky {
   virtual FactorStatus Factorize(const double* values) = 0;
   // x = A^{-1} b after a successful Factorize. b and x may alias.
   virtual void Solve(const double* b, double* x) = 0;
+  // z ~ A^{-1} b for a preconditioner, after a successful Factorize: may read a copy of the factor rounded to
+  // single precision (half the memory a solve streams; a solve is bound by memory). Its error is the
+  // rounding's, about 1e-7 of L's entries times the condition, so it is never an answer. Default: Solve.
+  virtual void Precondition(const double* b, double* x) { Solve(b, x); }
   // Nonzeros of the factor L (after analysis).
   virtual long FactorNonzeros() const = 0;
   // About how many solves with the factor cost as much as one numeric factorization (from the analysis's

@@ -409,7 +409,7 @@ class PathSolver {
           [&](const Eigen::VectorXd& v, Eigen::VectorXd* out) {
             springs_.HessianProduct(v, held_, here.conditions.diagonal_shift, out);
           },
-          [&](const Eigen::VectorXd& r, Eigen::VectorXd* out) { linear_.Solve(r, held_, out); }, g, options, &z,
+          [&](const Eigen::VectorXd& r, Eigen::VectorXd* out) { linear_.Precondition(r, held_, out); }, g, options, &z,
           &tangent_cg_iterations);
     };
     ConjugateGradientsStatus status = solve();

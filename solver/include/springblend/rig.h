@@ -27,12 +27,14 @@ constexpr int kSpringKindCount = 3;
 const char* ToString(SpringKind kind);
 
 enum class LinearSolverType {
-  kCholmodSupernodal,  // CHOLMOD supernodal Cholesky on OpenBLAS: the production backend
+  kCholmodSupernodal,  // CHOLMOD supernodal Cholesky on OpenBLAS, preconditioning with its factor rounded to
+                       // single precision (half the memory a solve streams): the production backend
+  kCholmodDouble,      // the same, preconditioning with the double factor: the baseline the benchmark compares
   kEigenSimplicial,    // Eigen's SimplicialLLT: a slow reference, kept for cross-checks
   kMumpsSingle,        // MUMPS in single precision, as a step and preconditioner: measured slower here
 };
 const char* ToString(LinearSolverType type);
-LinearSolverType LinearSolverTypeFromString(const std::string& name);  // "cholmod" | "eigen" | "mumps"
+LinearSolverType LinearSolverTypeFromString(const std::string& name);  // "cholmod" | "cholmod-double" | "eigen" | "mumps"
 
 struct RigOptions {
   // Vertices whose position differs by at most this fraction of the rest shape's bounding-box diagonal
