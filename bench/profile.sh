@@ -46,7 +46,8 @@ perf report -i "$work/perf.data" --no-children --sort dso,symbol --stdio --perce
   grep -E '^ +[0-9.]+%' > "$work/symbols.txt" || true
 [ -s "$work/symbols.txt" ] || skip "perf recorded no samples"
 # Group the self samples. BLAS level-3 kernels and copies run inside CHOLMOD's supernodal factorization; the
-# level-2 ones (trsv, gemv) inside its triangular solves with one right-hand side.
+# level-2 ones (trsv, gemv) inside its triangular solves with one right-hand side; Precondition is our own
+# triangular solve with the factor rounded to single precision (the conjugate gradients' preconditioner).
 python3 - "$work/symbols.txt" "$report" "$row" "$steps" "$method" "$(grep -c 'sweep frame' "$log")" << 'EOF'
 import re, sys
 symbols, report, row, steps, method, frames = sys.argv[1:]
@@ -62,8 +63,11 @@ for line in open(symbols):
         continue
     pct, dso, _, sym = float(m.group(1)), m.group(2), m.group(3), m.group(4)
     s = sym
+    s = s.replace("(anonymous namespace)::", "")
     if "HessianProduct" in s:
         g = order[3]
+    elif "Cholesky::Precondition" in s:  # our supernodal solve with the factor rounded to single precision
+        g = order[1]
     elif "SpringSystem::Run" in s or "SpringSystem::Energy" in s:
         g = order[2]
     elif "openblas" in dso or "libblas" in dso or "liblapack" in dso:
