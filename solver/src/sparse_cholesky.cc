@@ -11,6 +11,7 @@
 #include <string>
 #include <vector>
 
+#include "rounded_solve.h"
 #include "springblend/error.h"
 
 namespace springblend::internal {
@@ -89,121 +90,23 @@ class CholmodCholesky final : public SparseCholesky {
     return FactorStatus::kOk;
   }
 
-  // The supernodal solve with the rounded factor: y = P b, L y' = y, L^T y'' = y', x = P^T y''. L's entries
-  // are read as floats and every sum is in double, in a fixed order (deterministic). Memory traffic is half of
-  // cholmod_solve2's, which streams the double factor twice (the face: 53 MB per solve).
+  // The supernodal solve with the factor rounded to single precision (rounded_solve.h).
   void Precondition(const double* b, double* x) override {
     if (rounded_.empty()) {
       Solve(b, x);
       return;
     }
-    const int n = pattern_->n;
-    const int* perm = static_cast<const int*>(factor_->Perm);
-    const int* super = static_cast<const int*>(factor_->super);
-    const int* pi = static_cast<const int*>(factor_->pi);
-    const int* px = static_cast<const int*>(factor_->px);
-    const int* rows = static_cast<const int*>(factor_->s);
-    const float* lx = rounded_.data();
-    y_.resize(n);
-    for (int k = 0; k < n; ++k) y_[k] = b[perm[k]];
-    double* y = y_.data();
-    double* w = w_.data();
-    const int nsuper = static_cast<int>(factor_->nsuper);
-    for (int s = 0; s < nsuper; ++s) {
-      const int k1 = super[s], nscol = super[s + 1] - k1;
-      const int nsrow = pi[s + 1] - pi[s], below = nsrow - nscol;
-      const float* ls = lx + px[s];
-      // The diagonal block: y1 = L11^{-1} y1.
-      for (int j = 0; j < nscol; ++j) {
-        const float* col = ls + static_cast<std::ptrdiff_t>(j) * nsrow;
-        const double yj = y[k1 + j] / col[j];
-        y[k1 + j] = yj;
-        for (int r = j + 1; r < nscol; ++r) y[k1 + r] -= col[r] * yj;
-      }
-      if (below == 0) continue;
-      // w = L21 y1, four columns at a time (w is read and written once per four).
-      std::fill(w, w + below, 0.0);
-      int j = 0;
-      for (; j + 4 <= nscol; j += 4) {
-        const float* c0 = ls + static_cast<std::ptrdiff_t>(j) * nsrow + nscol;
-        const float* c1 = c0 + nsrow;
-        const float* c2 = c1 + nsrow;
-        const float* c3 = c2 + nsrow;
-        const double y0 = y[k1 + j], y1 = y[k1 + j + 1], y2 = y[k1 + j + 2], y3 = y[k1 + j + 3];
-        for (int r = 0; r < below; ++r) w[r] += (c0[r] * y0 + c1[r] * y1) + (c2[r] * y2 + c3[r] * y3);
-      }
-      for (; j < nscol; ++j) {
-        const float* c = ls + static_cast<std::ptrdiff_t>(j) * nsrow + nscol;
-        const double yj = y[k1 + j];
-        for (int r = 0; r < below; ++r) w[r] += c[r] * yj;
-      }
-      const int* srows = rows + pi[s] + nscol;
-      for (int r = 0; r < below; ++r) y[srows[r]] -= w[r];
-    }
-    // Two-lane sums in a fixed order (deterministic, and vectorized without reassociating).
-    typedef double Pair __attribute__((vector_size(16)));
-    const auto lanes = [](const float* c, const double* v, int count, double* out) {
-      Pair acc = {0.0, 0.0};
-      int r = 0;
-      for (; r + 2 <= count; r += 2) {
-        const Pair cv = {c[r], c[r + 1]};
-        const Pair vv = {v[r], v[r + 1]};
-        acc += cv * vv;
-      }
-      double sum = acc[0] + acc[1];
-      if (r < count) sum += c[r] * v[r];
-      *out = sum;
-    };
-    for (int s = nsuper - 1; s >= 0; --s) {
-      const int k1 = super[s], nscol = super[s + 1] - k1;
-      const int nsrow = pi[s + 1] - pi[s], below = nsrow - nscol;
-      const float* ls = lx + px[s];
-      const int* srows = rows + pi[s] + nscol;
-      // y1 -= L21^T w, w = y at the rows below (four columns at a time: w is read once per four).
-      if (below > 0) {
-        for (int r = 0; r < below; ++r) w[r] = y[srows[r]];
-        int j = 0;
-        for (; j + 4 <= nscol; j += 4) {
-          const float* c0 = ls + static_cast<std::ptrdiff_t>(j) * nsrow + nscol;
-          const float* c1 = c0 + nsrow;
-          const float* c2 = c1 + nsrow;
-          const float* c3 = c2 + nsrow;
-          Pair a0 = {0.0, 0.0}, a1 = a0, a2 = a0, a3 = a0;
-          int r = 0;
-          for (; r + 2 <= below; r += 2) {
-            const Pair wv = {w[r], w[r + 1]};
-            a0 += Pair{c0[r], c0[r + 1]} * wv;
-            a1 += Pair{c1[r], c1[r + 1]} * wv;
-            a2 += Pair{c2[r], c2[r + 1]} * wv;
-            a3 += Pair{c3[r], c3[r + 1]} * wv;
-          }
-          double t0 = a0[0] + a0[1], t1 = a1[0] + a1[1], t2 = a2[0] + a2[1], t3 = a3[0] + a3[1];
-          if (r < below) {
-            t0 += c0[r] * w[r];
-            t1 += c1[r] * w[r];
-            t2 += c2[r] * w[r];
-            t3 += c3[r] * w[r];
-          }
-          y[k1 + j] -= t0;
-          y[k1 + j + 1] -= t1;
-          y[k1 + j + 2] -= t2;
-          y[k1 + j + 3] -= t3;
-        }
-        for (; j < nscol; ++j) {
-          double t = 0.0;
-          lanes(ls + static_cast<std::ptrdiff_t>(j) * nsrow + nscol, w, below, &t);
-          y[k1 + j] -= t;
-        }
-      }
-      // The diagonal block: y1 = L11^{-T} y1.
-      for (int j = nscol - 1; j >= 0; --j) {
-        const float* col = ls + static_cast<std::ptrdiff_t>(j) * nsrow;
-        double t = 0.0;
-        lanes(col + j + 1, y + k1 + j + 1, nscol - j - 1, &t);
-        y[k1 + j] = (y[k1 + j] - t) / col[j];
-      }
-    }
-    for (int k = 0; k < n; ++k) x[perm[k]] = y[k];
+    SupernodalFactor view;
+    view.n = pattern_->n;
+    view.nsuper = static_cast<int>(factor_->nsuper);
+    view.perm = static_cast<const int*>(factor_->Perm);
+    view.super = static_cast<const int*>(factor_->super);
+    view.pi = static_cast<const int*>(factor_->pi);
+    view.px = static_cast<const int*>(factor_->px);
+    view.rows = static_cast<const int*>(factor_->s);
+    view.values = rounded_.data();
+    y_.resize(view.n);
+    RoundedSupernodalSolve(view, b, x, y_.data(), w_.data());
   }
 
   void Solve(const double* b, double* x) override {
