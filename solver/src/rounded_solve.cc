@@ -4,6 +4,25 @@
 #include <cstddef>
 
 namespace springblend::internal {
+namespace {
+
+// Two-lane sums in a fixed order (deterministic, and vectorized without reassociating).
+typedef double Pair __attribute__((vector_size(16)));
+
+// Column j of a supernode's entries (nsrow of them per column) from `first`.
+const float* Column(const float* first, int j, int nsrow) { return first + static_cast<std::ptrdiff_t>(j) * nsrow; }
+
+// sum_r c[r] v[r] over count entries.
+double Dot(const float* c, const double* v, int count) {
+  Pair acc = {0.0, 0.0};
+  int r = 0;
+  for (; r + 2 <= count; r += 2) acc += Pair{c[r], c[r + 1]} * Pair{v[r], v[r + 1]};
+  double sum = acc[0] + acc[1];
+  if (r < count) sum += c[r] * v[r];
+  return sum;
+}
+
+}  // namespace
 
 void RoundedSupernodalSolve(const SupernodalFactor& factor, const double* b, double* x, double* y, double* w) {
   const int n = factor.n;
@@ -21,7 +40,7 @@ void RoundedSupernodalSolve(const SupernodalFactor& factor, const double* b, dou
     const float* ls = lx + px[s];
     // The diagonal block: y1 = L11^{-1} y1.
     for (int j = 0; j < nscol; ++j) {
-      const float* col = ls + static_cast<std::ptrdiff_t>(j) * nsrow;
+      const float* col = Column(ls, j, nsrow);
       const double yj = y[k1 + j] / col[j];
       y[k1 + j] = yj;
       for (int r = j + 1; r < nscol; ++r) y[k1 + r] -= col[r] * yj;
@@ -31,7 +50,7 @@ void RoundedSupernodalSolve(const SupernodalFactor& factor, const double* b, dou
     std::fill(w, w + below, 0.0);
     int j = 0;
     for (; j + 4 <= nscol; j += 4) {
-      const float* c0 = ls + static_cast<std::ptrdiff_t>(j) * nsrow + nscol;
+      const float* c0 = Column(ls, j, nsrow) + nscol;
       const float* c1 = c0 + nsrow;
       const float* c2 = c1 + nsrow;
       const float* c3 = c2 + nsrow;
@@ -39,27 +58,13 @@ void RoundedSupernodalSolve(const SupernodalFactor& factor, const double* b, dou
       for (int r = 0; r < below; ++r) w[r] += (c0[r] * y0 + c1[r] * y1) + (c2[r] * y2 + c3[r] * y3);
     }
     for (; j < nscol; ++j) {
-      const float* c = ls + static_cast<std::ptrdiff_t>(j) * nsrow + nscol;
+      const float* c = Column(ls, j, nsrow) + nscol;
       const double yj = y[k1 + j];
       for (int r = 0; r < below; ++r) w[r] += c[r] * yj;
     }
     const int* srows = rows + pi[s] + nscol;
     for (int r = 0; r < below; ++r) y[srows[r]] -= w[r];
   }
-  // Two-lane sums in a fixed order (deterministic, and vectorized without reassociating).
-  typedef double Pair __attribute__((vector_size(16)));
-  const auto lanes = [](const float* c, const double* v, int count, double* out) {
-    Pair acc = {0.0, 0.0};
-    int r = 0;
-    for (; r + 2 <= count; r += 2) {
-      const Pair cv = {c[r], c[r + 1]};
-      const Pair vv = {v[r], v[r + 1]};
-      acc += cv * vv;
-    }
-    double sum = acc[0] + acc[1];
-    if (r < count) sum += c[r] * v[r];
-    *out = sum;
-  };
   for (int s = nsuper - 1; s >= 0; --s) {
     const int k1 = super[s], nscol = super[s + 1] - k1;
     const int nsrow = pi[s + 1] - pi[s], below = nsrow - nscol;
@@ -70,7 +75,7 @@ void RoundedSupernodalSolve(const SupernodalFactor& factor, const double* b, dou
       for (int r = 0; r < below; ++r) w[r] = y[srows[r]];
       int j = 0;
       for (; j + 4 <= nscol; j += 4) {
-        const float* c0 = ls + static_cast<std::ptrdiff_t>(j) * nsrow + nscol;
+        const float* c0 = Column(ls, j, nsrow) + nscol;
         const float* c1 = c0 + nsrow;
         const float* c2 = c1 + nsrow;
         const float* c3 = c2 + nsrow;
@@ -95,18 +100,12 @@ void RoundedSupernodalSolve(const SupernodalFactor& factor, const double* b, dou
         y[k1 + j + 2] -= t2;
         y[k1 + j + 3] -= t3;
       }
-      for (; j < nscol; ++j) {
-        double t = 0.0;
-        lanes(ls + static_cast<std::ptrdiff_t>(j) * nsrow + nscol, w, below, &t);
-        y[k1 + j] -= t;
-      }
+      for (; j < nscol; ++j) y[k1 + j] -= Dot(Column(ls, j, nsrow) + nscol, w, below);
     }
     // The diagonal block: y1 = L11^{-T} y1.
     for (int j = nscol - 1; j >= 0; --j) {
-      const float* col = ls + static_cast<std::ptrdiff_t>(j) * nsrow;
-      double t = 0.0;
-      lanes(col + j + 1, y + k1 + j + 1, nscol - j - 1, &t);
-      y[k1 + j] = (y[k1 + j] - t) / col[j];
+      const float* col = Column(ls, j, nsrow);
+      y[k1 + j] = (y[k1 + j] - Dot(col + j + 1, y + k1 + j + 1, nscol - j - 1)) / col[j];
     }
   }
   for (int k = 0; k < n; ++k) x[perm[k]] = y[k];

@@ -79,6 +79,7 @@ class CholmodCholesky final : public SparseCholesky {
   }
 
   FactorStatus Factorize(const double* values) override {
+    rounded_.clear();  // rounded on the first Precondition: a factor used only for direct solves never is
     cholmod_sparse a = View(values);
     const int ok = cholmod_factorize(&a, factor_, &common_);
     if (common_.status == CHOLMOD_NOT_POSDEF ||
@@ -86,12 +87,12 @@ class CholmodCholesky final : public SparseCholesky {
       return FactorStatus::kNotPositiveDefinite;
     }
     if (!ok || common_.status < CHOLMOD_OK) return FactorStatus::kFailed;
-    RoundFactor();
     return FactorStatus::kOk;
   }
 
   // The supernodal solve with the factor rounded to single precision (rounded_solve.h).
   void Precondition(const double* b, double* x) override {
+    if (rounded_.empty()) RoundFactor();
     if (rounded_.empty()) {
       Solve(b, x);
       return;
@@ -136,10 +137,8 @@ class CholmodCholesky final : public SparseCholesky {
  private:
   cholmod_sparse View(const double* values) const { return CholmodView(*pattern_, values); }
 
-  // Mutable because lnz is read from it after analysis.
   // The factor rounded to single precision for Precondition (supernodal factors only), and its workspaces.
   void RoundFactor() {
-    rounded_.clear();
     if (!round_ || !factor_->is_super || factor_->xtype != CHOLMOD_REAL || factor_->dtype != CHOLMOD_DOUBLE) return;
     const double* values = static_cast<const double*>(factor_->x);
     rounded_.resize(factor_->xsize);
@@ -147,6 +146,7 @@ class CholmodCholesky final : public SparseCholesky {
     w_.resize(std::max<size_t>(factor_->maxesize, 1));
   }
 
+  // Mutable because lnz is read from it after analysis.
   mutable cholmod_common common_{};
   const SymmetricPattern* pattern_ = nullptr;
   bool round_ = true;
