@@ -60,11 +60,14 @@ double MsSince(Clock::time_point start) {
 
 // --residual-tolerance / --step-tolerance override the measured methods' (and the baseline's) tolerances.
 std::optional<double> g_residual_tolerance, g_step_tolerance;
+// --negative-curvature on|off: override SolveOptions::follow_negative_curvature (every configuration).
+std::optional<bool> g_follow_negative_curvature;
 // --linear-solver: the rigs' sparse Cholesky backend (RigOptions::linear_solver).
 LinearSolverType g_linear_solver = RigOptions{}.linear_solver;
 SolveOptions WithTolerances(SolveOptions options) {
   if (g_residual_tolerance) options.residual_tolerance = *g_residual_tolerance;
   if (g_step_tolerance) options.step_tolerance = *g_step_tolerance;
+  if (g_follow_negative_curvature) options.follow_negative_curvature = *g_follow_negative_curvature;
   return options;
 }
 
@@ -733,6 +736,8 @@ std::string MarkdownReport(const Machine& machine, const Settings& settings, con
   std::string md = "# springblend-bench\n\n";
   md += fmt::format("machine: nproc {}, {}, date {}, git {}\n\n", machine.nproc, machine.cpu, machine.date,
                     machine.git);
+  md += fmt::format("options: follow_negative_curvature {}\n\n",
+                    WithTolerances(SolveOptions{}).follow_negative_curvature ? "on" : "off");
   md += fmt::format(
       "Frames: the paper's sweep, {} frames from the rest shape (frame 0) to the target; figures over frames "
       "1..{}. Every frame is stateless (starts from the rig's prediction for its weights). **alone**: each frame "
@@ -1026,6 +1031,11 @@ int Main(int argc, char** argv) {
       ->delimiter(',');
   app.add_option("--residual-tolerance", g_residual_tolerance, "override SolveOptions::residual_tolerance");
   app.add_option("--step-tolerance", g_step_tolerance, "override SolveOptions::step_tolerance");
+  std::string negative_curvature;
+  app.add_option("--negative-curvature", negative_curvature,
+                 "on|off: override SolveOptions::follow_negative_curvature (escaping saddles along the negative "
+                 "curvature the conjugate gradients meet) in every configuration")
+      ->check(CLI::IsMember({"on", "off"}));
   std::string linear_solver = ToString(g_linear_solver);
   app.add_option("--linear-solver", linear_solver, "sparse Cholesky backend: cholmod, cholmod-double, mumps or eigen")
       ->check(CLI::IsMember({"cholmod", "cholmod-double", "mumps", "eigen"}));
@@ -1035,6 +1045,7 @@ int Main(int argc, char** argv) {
     return app.exit(e) == 0 ? 0 : 2;
   }
   g_linear_solver = LinearSolverTypeFromString(linear_solver);
+  if (!negative_curvature.empty()) g_follow_negative_curvature = negative_curvature == "on";
   if (settings.quick && steps->count() == 0) settings.steps = 6;
   if (settings.shared.empty()) settings.shared = settings.repo / ".." / "shared" / "meshes";
   if (settings.methods.empty()) {

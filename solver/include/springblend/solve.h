@@ -87,10 +87,12 @@ struct SolveOptions {
   double refactor_cost_ratio = 0.5;
   // With reuse_factorization: where the conjugate gradients meet negative curvature of the true Hessian (a
   // saddle: a buckling lip, a compressed fold), add that direction to the projected Newton step, downhill and
-  // as long as a step may be, for the line search to shorten. Escapes saddles in far fewer iterations (cat
-  // 35 -> 15.6 per step, face 8.2 -> 6.2), but a sweep may then settle on another equilibrium than plain
-  // Newton's (horse, face-mix, cat: 3e-3 to 1e-2 of the diagonal apart), so it is off by default.
-  bool follow_negative_curvature = false;
+  // as long as a step may be, for the line search to shorten. A saddle is then left in a few iterations
+  // instead of crept off over dozens (face-mix's 36-frame sweep: the worst frame 36 -> 12 Newton iterations,
+  // the mean 7.1 -> 6.3). Where the mix has several minima a frame may settle on another one than without it
+  // (one frame of those 36, 1.2e-4 of the diagonal away); the answer is still the frame's alone, a certified
+  // minimum where checked, and continuous along sweeps (docs/benchmark.md). false: the projected step alone.
+  bool follow_negative_curvature = true;
   // No vertex moves further than this fraction of the mean rest length in one Newton step, so a step
   // cannot carry a vertex through its neighbours into an inverted equilibrium. Range (0, 1000].
   double max_step_fraction = 2.0;
