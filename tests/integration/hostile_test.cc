@@ -146,9 +146,9 @@ class HostileTest : public ::testing::Test {
   static v1::SolveRequest Normal() { return SweepRequest(character_->id(), 3, {0.6, 0.3}); }
 
   // A normal client, on its own connection: the same frames, bit for bit, as when the server was idle, and
-  // metadata calls answered, each within a few seconds.
+  // metadata calls answered, each within 15 s (a generous bound: the whole suite runs beside it on two cores).
   static void ExpectServed(const std::string& when) {
-    Client client({server_->address(), std::chrono::seconds(5)});
+    Client client({server_->address(), std::chrono::seconds(15)});
     std::vector<std::string> frames;
     try {
       client.Solve(Normal(), [&](const v1::SolvedFrame& f) { frames.push_back(f.positions()); });
