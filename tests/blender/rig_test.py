@@ -32,10 +32,11 @@ def main():
                   "rig": str(testing.CYLINDER / "rig.json"), "frames": FRAMES, "weights": WEIGHTS,
                   "export": os.path.join(directory, "exported", "cylinder.json"),
                   "output": os.path.join(directory, "baked.npy"), "result": os.path.join(directory, "result.json")}
-        # A rig baked by the CLI (in-betweens and the combination, from solved frames), imported with Import Rig
+        # A rig baked by the CLI (in-betweens and the combination, solved frames), imported with Import Rig
         # File: its sliders play it without the server.
         summary = json.loads(testing.cli("bake-rig", "--rig", str(testing.CYLINDER / "rig.json"), "--samples", "8",
-                                         "--inbetweens", "2", "--out", os.path.join(directory, "baked")))
+                                         "--inbetweens", "2", "--solved-inbetweens",
+                                         "--out", os.path.join(directory, "baked")))
         inbetween = summary["targets"][0]["inbetweens"][0]
         config.update({"baked": summary["rig"], "baked_output": os.path.join(directory, "baked_shown.npy"),
                        "baked_weights": [[inbetween, 0.0], [1.0, 1.0], [0.3, 0.7], [1.2, -0.1], [0.9, 0.4]]})

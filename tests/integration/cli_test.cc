@@ -240,22 +240,28 @@ TEST(CliRefusals, MistakesAreRefusedBeforeThePhysicsIsBuilt) {
   }
 }
 
-// A point cache placed on a shot's timeline: --start-frame and --sample-rate go into its header; they are
-// refused for OBJ output, which has no timeline.
-// bake-rig writes a rig file that `blend --linear` plays back: at a baked in-between's weight and with both
-// targets at 1 (the rig's combination) it gives the solved frame; between in-betweens it is nearer the solved
-// frame than the original rig's linear blendshape. Bad pair lists are refused by name.
+// bake-rig writes a rig file that `blend --linear` plays back: with both targets at 1 (the rig's combination) it
+// gives the solved frame, and with --solved-inbetweens also at a baked in-between's weight; between in-betweens
+// it is nearer the solved frame than the original rig's linear blendshape, and fitted in-betweens (the default)
+// nearer the samples than solved ones. Bad pair lists are refused by name.
 TEST(CliBakeRig, ABakedRigPlaysThePhysicsBackAsAPlainBlendshapeRig) {
   TempDir dir;
   const std::string rig = DataPath("cylinder/rig.json");
-  const CliRun bake = RunCli("bake-rig --rig " + rig + " --samples 16 --inbetweens 3 --out " + dir.File("baked"), dir);
+  const std::string options = "bake-rig --rig " + rig + " --samples 16 --inbetweens 3";
+  const CliRun bake = RunCli(options + " --out " + dir.File("baked"), dir);
   ASSERT_EQ(bake.exit_code, 0) << bake.stderr_text;
   ASSERT_EQ(bake.lines.size(), 1u);
+  const CliRun on_path = RunCli(options + " --solved-inbetweens --out " + dir.File("solved"), dir);
+  ASSERT_EQ(on_path.exit_code, 0) << on_path.stderr_text;
+  ASSERT_EQ(on_path.lines.size(), 1u);
   const nlohmann::json& summary = bake.lines[0];
   ASSERT_EQ(summary["targets"].size(), 2u);
   EXPECT_EQ(summary["targets"][0]["inbetweens"].size(), 3u);
   EXPECT_EQ(summary["combinations"][0]["name"], "bend_twist");
+  EXPECT_EQ(summary["inbetweens"], "fitted");
+  EXPECT_EQ(on_path.lines[0]["inbetweens"], "solved");
   EXPECT_LT(summary["max_error"].get<double>(), summary["linear_max_error"].get<double>());
+  EXPECT_LE(summary["max_error"].get<double>(), on_path.lines[0]["max_error"].get<double>());
   const double diagonal = BoundingBoxDiagonal(LoadMesh(DataPath("cylinder/cylinder.obj")).vertices);
   const std::string baked = " --rig " + dir.File("baked/rig.json") + " --linear";
   const auto frame = [&](const std::string& how, const std::string& weights, const std::string& name) {
@@ -263,10 +269,12 @@ TEST(CliBakeRig, ABakedRigPlaysThePhysicsBackAsAPlainBlendshapeRig) {
     EXPECT_EQ(run.exit_code, 0) << run.stderr_text;
     return LoadMesh(dir.File(name)).vertices;
   };
-  const double at = summary["targets"][0]["inbetweens"][1].get<double>();
+  const double at = on_path.lines[0]["targets"][0]["inbetweens"][1].get<double>();
   const std::string w = fmt::format("bend={}", at);
   // float32 OBJ text on both sides.
-  EXPECT_LE(testing::MaxDistance(frame(baked, w, "b1.obj"), frame(" --rig " + rig, w, "s1.obj")), 1e-6 * diagonal);
+  EXPECT_LE(testing::MaxDistance(frame(" --linear --rig " + dir.File("solved/rig.json"), w, "b1.obj"),
+                                 frame(" --rig " + rig, w, "s1.obj")),
+            1e-6 * diagonal);
   EXPECT_LE(testing::MaxDistance(frame(baked, "1,1", "b2.obj"), frame(" --rig " + rig, "1,1", "s2.obj")),
             1e-6 * diagonal);
   const Points solved = frame(" --rig " + rig, "0.4,0.3", "s3.obj");
@@ -281,6 +289,8 @@ TEST(CliBakeRig, ABakedRigPlaysThePhysicsBackAsAPlainBlendshapeRig) {
   EXPECT_THAT(syntax.stderr_text, ::testing::HasSubstr("--pairs: 'bend+twist' is not A*B"));
 }
 
+// A point cache placed on a shot's timeline: --start-frame and --sample-rate go into its header; they are
+// refused for OBJ output, which has no timeline.
 TEST(CliBlend, PointCacheStartsAtTheShotsFirstFrame) {
   TempDir dir;
   const std::string args = "blend --rest " + kRest + " --target " + kBend + " --sweep 3 --start-frame 1001 ";

@@ -119,10 +119,12 @@ class RigFileTest(unittest.TestCase):
         self.assertIn("'twirl' is not a target of this rig (targets: bend, twist)", caught.exception.message)
 
     def test_a_baked_rig_plays_back_the_solved_frames(self):
-        # springblend bake-rig keeps solved frames as in-betweens and correctives; played linearly they come back.
+        # springblend bake-rig --solved-inbetweens keeps solved frames as in-betweens and correctives; played
+        # linearly they come back.
         with tempfile.TemporaryDirectory() as directory:
             summary = json.loads(testing.cli("bake-rig", "--rig", RIG, "--samples", "8", "--inbetweens", "2",
-                                             "--out", os.path.join(directory, "baked")))
+                                             "--solved-inbetweens", "--out", os.path.join(directory, "baked")))
+            self.assertEqual(summary["inbetweens"], "solved")
             baked = rigfile.load_rig(summary["rig"])
             self.assertEqual(baked.weight_names, ["bend", "twist"])
             at = summary["targets"][1]["inbetweens"][0]

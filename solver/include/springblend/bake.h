@@ -1,6 +1,6 @@
-// Baking the physics into a plain blendshape rig: each target's solved path becomes in-betweens (the solved
-// equilibria at chosen weights, played back piecewise linearly, as Maya's in-betweens and Unity's multi-frame
-// blend shapes are), and targets whose solved mix differs from the sum of their parts get a combination
+// Baking the physics into a plain blendshape rig: each target's solved path becomes in-betweens (shapes at chosen
+// weights, fitted to the whole solved path, played back piecewise linearly, as Maya's in-betweens and Unity's
+// multi-frame blend shapes are), and targets whose solved mix differs from the sum of their parts get a combination
 // corrective (the solved equilibrium with its drivers at 1, on by the product of their weights, as Maya's
 // combinationShape). A linear blendshape evaluator then plays most of the physics with no solver at all.
 //
@@ -42,9 +42,14 @@ struct BakeOptions {
   // the largest error along the path within tolerance. Range [0, samples - 1].
   int inbetweens = 3;
   double tolerance = 0.0;  // of the rest shape's bounding-box diagonal; 0: use `inbetweens`
-  // Each target's path is solved at samples + 1 evenly spaced weights in [0, 1]; the in-betweens are chosen
-  // among them. Range [2, 1024].
+  // Each target's path is solved at samples + 1 evenly spaced weights in [0, 1]; the in-betweens' weights are
+  // chosen among them. Range [2, 1024].
   int samples = 32;
+  // false: each in-between's shape is fitted to the whole path (per vertex, the smallest largest distance from
+  // the solved samples: a straight segment is best off the curve it cuts, about halving the error); true: the
+  // in-betweens are the solved frames at their weights (the baked rig then reproduces them exactly). Either
+  // way the full shape is the solved frame at 1 and the rest shape is the rig's.
+  bool solved_inbetweens = false;
   BakePairs pair_mode = BakePairs::kAuto;
   std::vector<std::pair<std::string, std::string>> pairs;  // kList: target names
   // kAuto: a pair gets a corrective when its solved mix (both at 1) is farther than this (of the diagonal)
@@ -99,6 +104,8 @@ struct BakeSummary {
   int refused_pairs = 0;  // kAuto: beyond the threshold at (1, 1), but the corrective did not pay inside the range
   double max_error = 0.0;  // over every target's path samples, of the diagonal
   double linear_max_error = 0.0;
+  bool solved_inbetweens = false;  // BakeOptions::solved_inbetweens
+  double inbetweens_ms = 0.0;  // choosing (and fitting) the in-betweens, part of ms
   double ms = 0.0;
 };
 struct BakedRig {
