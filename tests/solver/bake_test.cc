@@ -52,7 +52,7 @@ class BakeTest : public ::testing::Test {
   }
   static BakeOptions Options(bool solved_inbetweens) {
     BakeOptions options;
-    options.samples = 32;
+    options.samples = 16;
     options.inbetweens = 3;
     options.solved_inbetweens = solved_inbetweens;
     return options;
