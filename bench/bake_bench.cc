@@ -128,7 +128,7 @@ json RunRow(const RowSpec& spec, const Settings& settings) {
   for (const BakedTarget& t : baked.targets) {
     std::vector<double> w;
     for (const BakedShape& s : t.inbetweens) w.push_back(s.weight);
-    inbetweens.push_back({{"target", t.name}, {"weights", w}, {"max_error", t.max_error}});
+    inbetweens.push_back({{"target", t.name}, {"weights", w}, {"snaps", t.snaps}, {"max_error", t.max_error}});
     shapes += 1 + static_cast<int>(t.inbetweens.size());
   }
   shapes += static_cast<int>(baked.combinations.size());

@@ -134,7 +134,7 @@ nlohmann::json SummaryJson(const BakedRig& baked, const std::string& dir) {
   for (const BakedTarget& t : baked.targets) {
     std::vector<double> weights;
     for (const BakedShape& s : t.inbetweens) weights.push_back(s.weight);
-    targets.push_back({{"name", t.name}, {"inbetweens", weights}, {"max_error", t.max_error},
+    targets.push_back({{"name", t.name}, {"inbetweens", weights}, {"snaps", t.snaps}, {"max_error", t.max_error},
                        {"linear_error", t.linear_error}});
   }
   nlohmann::json combinations = nlohmann::json::array();

@@ -8,6 +8,7 @@
 #include <algorithm>
 #include <chrono>
 #include <cmath>
+#include <functional>
 #include <limits>
 #include <set>
 
@@ -43,7 +44,7 @@ std::vector<double> SampleErrors(const std::vector<Points>& shapes, const std::v
   return errors;
 }
 
-// The largest error of the path: at the samples, and midway between two knots one sample apart. Such knots mark
+// The largest error of the path: at the samples, and midway between two knots at neighbouring samples. Such knots mark
 // where the path snaps between two samples (a fold): a frame there is on one side or the other, half the snap
 // from the segment's middle at best (the solved shapes as knots), so what is measured there is how far the
 // middle is from midway between the two sides (zero with the solved shapes).
@@ -138,12 +139,12 @@ class KnotSearch {
 };
 
 // The knots' shapes that make the largest distance of the piecewise-linear path from the samples smallest (and
-// midway between two knots one sample apart: PathError), from `start->values` (never worse than
+// midway between two knots at neighbouring samples: PathError), from `start->values` (never worse than
 // them): each vertex on its own (the vertices are independent, so the largest over them is then smallest too)
 // by Lawson's iteratively reweighted least squares, its knots' positions the weighted least-squares fit (a
 // tridiagonal system: a knot meets only its neighbours) with a slight pull towards the solved sample at the
 // knot, which keeps the system regular where the weights vanish. The rest shape and the full shape are held; the
-// middle of a snap (two knots one sample apart) is kept midway between its sides by a weight far above the
+// middle of a snap (two knots at neighbouring samples) is kept midway between its sides by a weight far above the
 // samples' (a frame inside the snap is then half the snap away, as with the solved shapes, not more).
 // With `only`, just those vertices are fitted and start->error is the largest over them (a lower bound of the
 // whole path's: a filter for trials).
@@ -372,6 +373,80 @@ double Elapsed(std::chrono::steady_clock::time_point since) {
   return std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - since).count();
 }
 
+// Where the path snaps between two samples (a fold: the equilibrium jumps to another branch), a plain rig can
+// only jump too, and does best jumping where the path does: a step between samples far longer than both steps
+// beside it (kSnapStep times) is bisected, each frame solved midway joining the samples, for as long as that
+// frame lies with one side (within a quarter of the gap's ends' distances), until the gap is 2^-kSnapBisections of
+// a sample; a frame midway between the sides means a steep but smooth path, and ends it. Up to kMaxSnaps per
+// path, the largest steps first; the gaps are bisected side by side (one batch of frames per halving). Returns
+// the snaps located.
+constexpr double kSnapStep = 3.0;
+constexpr int kSnapBisections = 6;
+constexpr int kMaxSnaps = 4;
+int LocateSnaps(const std::function<void(const std::vector<double>&, std::vector<Points>*)>& solve,
+                std::vector<double>* alphas, std::vector<Points>* shapes) {
+  const int n = static_cast<int>(shapes->size()) - 1;
+  if (n < 1) return 0;
+  std::vector<double> step(n);
+  for (int j = 0; j < n; ++j) step[j] = Distance((*shapes)[j], (*shapes)[j + 1]);
+  std::vector<std::pair<double, int>> candidates;  // (how much longer than its neighbours, step)
+  for (int j = 0; j < n; ++j) {
+    const double beside = std::max(j > 0 ? step[j - 1] : 0.0, j + 1 < n ? step[j + 1] : 0.0);
+    if (step[j] > 0.0 && step[j] > kSnapStep * beside) candidates.push_back({beside > 0.0 ? step[j] / beside : 1e300, j});
+  }
+  std::sort(candidates.begin(), candidates.end(), [](const auto& a, const auto& b) {
+    return a.first != b.first ? a.first > b.first : a.second < b.second;
+  });
+  if (static_cast<int>(candidates.size()) > kMaxSnaps) candidates.resize(kMaxSnaps);
+  struct Gap {
+    double lo, hi;
+    Points at_lo, at_hi;
+    bool open = true;
+  };
+  std::vector<Gap> gaps;
+  for (const auto& [ratio, j] : candidates) gaps.push_back({(*alphas)[j], (*alphas)[j + 1], (*shapes)[j], (*shapes)[j + 1]});
+  const double narrowest = ((*alphas)[1] - (*alphas)[0]) / (1 << kSnapBisections);
+  std::vector<std::pair<double, Points>> added;
+  int located = 0;
+  for (int halving = 0; halving < kSnapBisections; ++halving) {
+    std::vector<double> at;
+    std::vector<size_t> which;
+    for (size_t g = 0; g < gaps.size(); ++g) {
+      if (gaps[g].open) {
+        at.push_back(0.5 * (gaps[g].lo + gaps[g].hi));
+        which.push_back(g);
+      }
+    }
+    if (at.empty()) break;
+    std::vector<Points> middles;
+    solve(at, &middles);
+    for (size_t k = 0; k < at.size(); ++k) {
+      Gap& gap = gaps[which[k]];
+      const double a = Distance(middles[k], gap.at_lo), b = Distance(middles[k], gap.at_hi);
+      if (a <= 0.25 * (a + b)) {
+        gap.lo = at[k];
+        gap.at_lo = middles[k];
+      } else if (b <= 0.25 * (a + b)) {
+        gap.hi = at[k];
+        gap.at_hi = middles[k];
+      } else {
+        gap.open = false;  // midway between the sides: steep, not a snap
+      }
+      added.push_back({at[k], std::move(middles[k])});
+      if (gap.open && gap.hi - gap.lo <= narrowest * (1.0 + 1e-9)) {
+        gap.open = false;
+        ++located;
+      }
+    }
+  }
+  for (auto& [alpha, shape] : added) {
+    const size_t i = std::upper_bound(alphas->begin(), alphas->end(), alpha) - alphas->begin();
+    alphas->insert(alphas->begin() + static_cast<std::ptrdiff_t>(i), alpha);
+    shapes->insert(shapes->begin() + static_cast<std::ptrdiff_t>(i), std::move(shape));
+  }
+  return located;
+}
+
 }  // namespace
 
 void BakeOptions::Validate() const {
@@ -486,28 +561,43 @@ BakedRig BakeRig(const BakeInput& input, const FrameSource& frames, const BakeOp
   };
 
   // 1. Each target's path at samples + 1 weights in [0, 1] (the rest shape at 0 is the rig's own), one target at
-  // a time (a production face's samples of every target at once would be hundreds of MB), and 2. its in-betweens.
-  const int n = options.samples;
-  std::vector<double> alphas(n + 1);
-  for (int j = 0; j <= n; ++j) alphas[j] = static_cast<double>(j) / n;
+  // a time (a production face's samples of every target at once would be hundreds of MB), its snaps located, and
+  // 2. its in-betweens.
+  const int uniform = options.samples;
   baked.targets.resize(m);
   for (int t = 0; t < m; ++t) {
-    std::vector<std::vector<double>> weights;
-    for (int j = 1; j <= n; ++j) {
+    std::vector<double> alphas(uniform + 1);
+    for (int j = 0; j <= uniform; ++j) alphas[j] = static_cast<double>(j) / uniform;
+    const auto alone = [&](double alpha) {
       std::vector<double> w(m, 0.0);
-      w[t] = alphas[j];
-      weights.push_back(std::move(w));
-    }
+      w[t] = alpha;
+      return w;
+    };
+    std::vector<std::vector<double>> weights;
+    for (int j = 1; j <= uniform; ++j) weights.push_back(alone(alphas[j]));
     std::vector<SolvedShape> solved;
     solve(weights, &solved);
-    std::vector<Points> shapes(n + 1);
+    std::vector<Points> shapes(uniform + 1);
     shapes[0] = input.rest;
-    for (int j = 1; j <= n; ++j) shapes[j] = std::move(solved[j - 1].positions);
+    for (int j = 1; j <= uniform; ++j) shapes[j] = std::move(solved[j - 1].positions);
+    const int snaps = LocateSnaps(
+        [&](const std::vector<double>& at, std::vector<Points>* out) {
+          std::vector<std::vector<double>> w;
+          for (double a : at) w.push_back(alone(a));
+          std::vector<SolvedShape> frames;
+          solve(w, &frames);
+          out->clear();
+          for (SolvedShape& f : frames) out->push_back(std::move(f.positions));
+        },
+        &alphas, &shapes);
+    summary.snaps += snaps;
+    const int n = static_cast<int>(shapes.size()) - 1;
     const auto choosing = std::chrono::steady_clock::now();
     Inbetweens chosen = ChooseInbetweens(shapes, alphas, options, input.diagonal);
     summary.inbetweens_ms += Elapsed(choosing);
     BakedTarget& target = baked.targets[t];
     target.name = input.target_names[t];
+    target.snaps = snaps;
     for (size_t k = 0; k < chosen.knots.size(); ++k) {
       target.inbetweens.push_back({alphas[chosen.knots[k]], std::move(chosen.values[k])});
     }

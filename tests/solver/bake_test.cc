@@ -6,6 +6,7 @@
 #include <gmock/gmock.h>
 #include <gtest/gtest.h>
 
+#include <cmath>
 #include <limits>
 
 #include "springblend/bake.h"
@@ -255,6 +256,51 @@ TEST_F(BakeTest, APairFoundByTheSearchIsKeptOnlyWhereItPaysAndThenReproducesItsM
   ASSERT_EQ(l.combinations.size(), 1u);
   EXPECT_EQ(l.combinations[0].drivers, (std::vector<int>{0, 1}));
   EXPECT_LE(MaxDistance(l.Evaluate({1.0, 1.0}), mix), 1e-9 * diagonal);
+}
+
+// A path that snaps between two samples (a fold: here a made-up one, at weight 0.3712, on a path that is linear
+// on either side): the bake locates the snap by bisection and jumps where the path does, so frames beside the
+// snap are reproduced (a straight path either side) rather than blended across it; a steep but smooth path is not
+// taken for a snap.
+TEST(BakeSnaps, ASnapBetweenSamplesIsLocatedAndTheBakeJumpsThere) {
+  constexpr double kSnap = 0.3712;
+  BakeInput input;
+  input.rest = Points::Zero(4, 3);
+  input.rest.col(0) << 0.0, 1.0, 0.0, 1.0;
+  input.rest.col(1) << 0.0, 0.0, 1.0, 1.0;
+  input.target_names = {"fold", "smooth"};
+  input.diagonal = std::sqrt(2.0);
+  const auto shape = [&](const std::vector<double>& w) {
+    Points x = input.rest;
+    x.col(2).array() += 0.5 * w[0] + (w[0] > kSnap ? 0.2 : 0.0);  // the fold: a jump of 0.2
+    x.col(0).array() += 0.3 * (std::tanh(12.0 * (w[1] - 0.5)) - std::tanh(-6.0));  // steep in the middle, smooth
+    return x;
+  };
+  const FrameSource frames = [&](const std::vector<std::vector<double>>& weights, std::vector<SolvedShape>* out) {
+    out->clear();
+    for (const auto& w : weights) out->push_back({shape(w), true});
+  };
+  BakeOptions options;
+  options.samples = 16;
+  options.inbetweens = 3;
+  options.pair_mode = BakePairs::kNone;
+  for (bool solved : {false, true}) {
+    options.solved_inbetweens = solved;
+    const BakedRig b = BakeRig(input, frames, options);
+    EXPECT_EQ(b.targets[0].snaps, 1) << solved;
+    EXPECT_EQ(b.targets[1].snaps, 0) << solved;
+    EXPECT_EQ(b.summary.snaps, 1) << solved;
+    // Two in-betweens bracket the snap within 1/64 of a sample.
+    const auto& in = b.targets[0].inbetweens;
+    bool bracketed = false;
+    for (size_t k = 0; k + 1 < in.size(); ++k) {
+      bracketed |= in[k].weight <= kSnap && in[k + 1].weight > kSnap && in[k + 1].weight - in[k].weight <= 1.0 / (16 * 64) + 1e-12;
+    }
+    EXPECT_TRUE(bracketed) << solved;
+    for (double alpha : {0.1, 0.3, 0.36, 0.38, 0.45, 0.8}) {
+      EXPECT_LE(MaxDistance(b.Evaluate({alpha, 0.0}), shape({alpha, 0.0})), 1e-9) << alpha << " " << solved;
+    }
+  }
 }
 
 TEST_F(BakeTest, BadOptionsAndPairsAreRefusedByName) {

@@ -42,8 +42,9 @@ struct BakeOptions {
   // the largest error along the path within tolerance. Range [0, samples - 1].
   int inbetweens = 3;
   double tolerance = 0.0;  // of the rest shape's bounding-box diagonal; 0: use `inbetweens`
-  // Each target's path is solved at samples + 1 evenly spaced weights in [0, 1]; the in-betweens' weights are
-  // chosen among them. Range [2, 1024].
+  // Each target's path is solved at samples + 1 evenly spaced weights in [0, 1], and where it snaps between two
+  // of them (a step far longer than the steps beside it), at weights bisecting that gap down to 1/64 of a sample;
+  // the in-betweens' weights are chosen among them. Range [2, 1024].
   int samples = 32;
   // false: each in-between's shape is fitted to the whole path (per vertex, the smallest largest distance from
   // the solved samples: a straight segment is best off the curve it cuts, about halving the error); true: the
@@ -86,6 +87,7 @@ struct BakedTarget {
   std::string name;
   std::vector<BakedShape> inbetweens;  // ascending weights in (0, 1)
   Points full;                         // the solved shape at weight 1
+  int snaps = 0;              // places where the path snaps between samples (a fold), located by bisection
   double max_error = 0.0;     // largest distance of a vertex, baked against solved, over the path's samples
   double linear_error = 0.0;  // the same for the straight blend from the rest shape to `full`
 };
@@ -102,6 +104,7 @@ struct BakeSummary {
   int candidate_pairs = 0;  // kAuto: pairs that move a common region (their mixes were solved)
   int kept_pairs = 0;
   int refused_pairs = 0;  // kAuto: beyond the threshold at (1, 1), but the corrective did not pay inside the range
+  int snaps = 0;          // over the targets' paths: snaps located between samples
   double max_error = 0.0;  // over every target's path samples, of the diagonal
   double linear_max_error = 0.0;
   bool solved_inbetweens = false;  // BakeOptions::solved_inbetweens
