@@ -153,6 +153,7 @@ nlohmann::json SummaryJson(const BakedRig& baked, const std::string& dir) {
           {"candidate_pairs", s.candidate_pairs},
           {"kept_pairs", s.kept_pairs},
           {"refused_pairs", s.refused_pairs},
+          {"snaps", s.snaps},
           {"max_error", s.max_error},
           {"linear_max_error", s.linear_max_error},
           {"inbetweens", s.solved_inbetweens ? "solved" : "fitted"},

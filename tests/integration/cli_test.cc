@@ -259,6 +259,8 @@ TEST(CliBakeRig, ABakedRigPlaysThePhysicsBackAsAPlainBlendshapeRig) {
   EXPECT_EQ(summary["targets"][0]["inbetweens"].size(), 3u);
   EXPECT_EQ(summary["combinations"][0]["name"], "bend_twist");
   EXPECT_EQ(summary["inbetweens"], "fitted");
+  EXPECT_EQ(summary["snaps"], 0);  // the cylinder's paths are smooth
+  EXPECT_EQ(summary["targets"][0]["snaps"], 0);
   EXPECT_EQ(on_path.lines[0]["inbetweens"], "solved");
   EXPECT_LT(summary["max_error"].get<double>(), summary["linear_max_error"].get<double>());
   EXPECT_LE(summary["max_error"].get<double>(), on_path.lines[0]["max_error"].get<double>());
