@@ -44,27 +44,6 @@ std::vector<double> SampleErrors(const std::vector<Points>& shapes, const std::v
   return errors;
 }
 
-// The largest error of the path: at the samples, and midway between two knots at neighbouring samples. Such knots mark
-// where the path snaps between two samples (a fold): a frame there is on one side or the other, half the snap
-// from the segment's middle at best (the solved shapes as knots), so what is measured there is how far the
-// middle is from midway between the two sides (zero with the solved shapes).
-double PathError(const std::vector<Points>& shapes, const std::vector<double>& alphas, const std::vector<int>& knots,
-                 const std::vector<Points>& values, double diagonal) {
-  const std::vector<double> errors = SampleErrors(shapes, alphas, knots, values, diagonal);
-  double largest = *std::max_element(errors.begin(), errors.end());
-  const int n = static_cast<int>(shapes.size()) - 1;
-  std::vector<int> at = {0};
-  at.insert(at.end(), knots.begin(), knots.end());
-  at.push_back(n);
-  for (size_t i = 0; i + 1 < at.size(); ++i) {
-    if (at[i + 1] - at[i] != 1) continue;
-    const Points& a = i == 0 ? shapes[0] : values[i - 1];
-    const Points& b = i + 2 == at.size() ? shapes[n] : values[i];
-    largest = std::max(largest, Distance(0.5 * (a + b), 0.5 * (shapes[at[i]] + shapes[at[i + 1]])) / diagonal);
-  }
-  return largest;
-}
-
 // In-betweens chosen among the samples: the knots (interior sample indices, ascending), their shapes and the
 // largest error of the piecewise-linear path through them at the samples.
 struct Inbetweens {
@@ -138,9 +117,8 @@ class KnotSearch {
   std::vector<std::vector<int>> from_;
 };
 
-// The knots' shapes that make the largest distance of the piecewise-linear path from the samples smallest (and
-// midway between two knots at neighbouring samples: PathError), from `start->values` (never worse than
-// them): each vertex on its own (the vertices are independent, so the largest over them is then smallest too)
+// The knots' shapes that make the largest distance of the piecewise-linear path from the samples smallest, from
+// `start->values` (never worse than them): each vertex on its own (the vertices are independent, so the largest over them is then smallest too)
 // by Lawson's iteratively reweighted least squares, its knots' positions the weighted least-squares fit (a
 // tridiagonal system: a knot meets only its neighbours) with a slight pull towards the solved sample at the
 // knot, which keeps the system regular where the weights vanish. The rest shape and the full shape are held; the
@@ -162,7 +140,9 @@ void FitKnots(const std::vector<Points>& shapes, const std::vector<double>& alph
   at.insert(at.end(), start->knots.begin(), start->knots.end());
   at.push_back(n);
   // The points the path is measured at: its segment (left knot index into `at`), its place u in it, and the
-  // shape it should have there: a sample, or midway between two (PathError).
+  // shape it should have there: a sample, or, midway between two knots at neighbouring samples (a snap: a frame
+  // there is on one side or the other, half the snap from the segment's middle at best), midway between the two
+  // sides (with the solved shapes as knots, the path is exactly there).
   struct Point {
     int segment;
     double place;
@@ -234,9 +214,9 @@ void FitKnots(const std::vector<Points>& shapes, const std::vector<double>& alph
         }
         // Tridiagonal solve (symmetric positive definite: no pivoting).
         for (int k = 2; k <= count; ++k) {
-          const double f = off[k - 1] / diag[k - 1];
-          diag[k] -= f * off[k - 1];
-          rhs[k] -= f * rhs[k - 1];
+          const double ratio = off[k - 1] / diag[k - 1];
+          diag[k] -= ratio * off[k - 1];
+          rhs[k] -= ratio * rhs[k - 1];
         }
         c[count] = rhs[count] / diag[count];
         for (int k = count - 1; k >= 1; --k) c[k] = (rhs[k] - off[k] * c[k + 1]) / diag[k];
@@ -262,7 +242,7 @@ void FitKnots(const std::vector<Points>& shapes, const std::vector<double>& alph
       least_of[f] = least / diagonal;
     }
   });
-  // The largest over the vertices of their largest errors at the points: PathError.
+  // The largest over the vertices of their largest errors at the points.
   start->error = least_of.empty() ? 0.0 : *std::max_element(least_of.begin(), least_of.end());
   if (!only) start->vertex_errors = std::move(least_of);
 }
@@ -279,13 +259,13 @@ Inbetweens ChooseInbetweens(const std::vector<Points>& shapes, const std::vector
     Inbetweens in;
     in.knots = search.Knots(k);
     for (int j : in.knots) in.values.push_back(shapes[j]);
-    in.error = PathError(shapes, alphas, in.knots, in.values, diagonal);
+    in.error = search.Error(k);  // FitKnots's measure too: a snap's middle is exactly midway with solved shapes
     return in;
   };
   const auto met = [&](double error) { return options.tolerance > 0.0 && error <= options.tolerance; };
   if (options.solved_inbetweens) {
     for (int k = 0; k < search.count(); ++k) {
-      if (met(search.Error(k)) && met(solved(k).error)) return solved(k);
+      if (met(search.Error(k))) return solved(k);
     }
     return solved(search.count());
   }
@@ -584,10 +564,10 @@ BakedRig BakeRig(const BakeInput& input, const FrameSource& frames, const BakeOp
         [&](const std::vector<double>& at, std::vector<Points>* out) {
           std::vector<std::vector<double>> w;
           for (double a : at) w.push_back(alone(a));
-          std::vector<SolvedShape> frames;
-          solve(w, &frames);
+          std::vector<SolvedShape> middles;
+          solve(w, &middles);
           out->clear();
-          for (SolvedShape& f : frames) out->push_back(std::move(f.positions));
+          for (SolvedShape& middle : middles) out->push_back(std::move(middle.positions));
         },
         &alphas, &shapes);
     summary.snaps += snaps;
