@@ -860,6 +860,7 @@ void BuildPath(const Rig& rig, int target, const TargetPathsOptions& options, Ta
     std::vector<int> next_dense;
     size_t s = 0;
     for (size_t i = 0; i < path->alphas.size(); ++i) {
+      const bool own_ends = HasTangent(*path, static_cast<int>(i)) && HasTangent(*path, static_cast<int>(i) + 1);
       next.alphas.push_back(path->alphas[i]);
       next.corrections.push_back(std::move(path->corrections[i]));
       next.tangents.push_back(std::move(path->tangents[i]));
@@ -881,10 +882,14 @@ void BuildPath(const Rig& rig, int target, const TargetPathsOptions& options, Ta
         }
         ++s;
       } else {
+        // A neighbour's interpolant changed only where one of its ends has no exact tangent (its slope is then
+        // taken from the samples beside it). With both, it is the cubic Hermite of its own two samples, and
+        // checking it again would solve the same midpoint from the same start: on the face's jawOpen path,
+        // 10 of 71 checks (1.6 s of the build's CPU), with the same samples and certificates.
         const bool neighbour = std::binary_search(split.begin(), split.end(), static_cast<int>(i) - 1) ||
                                std::binary_search(split.begin(), split.end(), static_cast<int>(i) + 1);
         const std::uint8_t kind = path->certified[i];
-        certified.push_back(neighbour && kind != kSwitch && kind != kFold ? kUnchecked : kind);
+        certified.push_back(neighbour && !own_ends && kind != kSwitch && kind != kFold ? kUnchecked : kind);
         next_errors.push_back(errors[i]);
         next_parent.push_back(parent_error[i]);
       }
