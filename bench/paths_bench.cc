@@ -99,6 +99,7 @@ struct Settings {
   int frames = 17;
   int targets_measured = 2;  // frames are measured on the first this many targets of a row
   bool reference = true;
+  bool span = true;  // SolveOptions::path_span_step for the path frames
   RigOptions rig;  // the paths' options (--path-*)
 };
 
@@ -166,8 +167,10 @@ json RunRow(const RowSpec& spec, const Settings& settings) {
 
   const double diagonal = s.bounding_box_diagonal;
   SolveOptions shipped;
+  shipped.path_span_step = settings.span;
   SolveOptions full = shipped;
   full.local_finish = false;
+  full.path_span_step = false;  // the baseline: Newton from the interpolant
   SolveOptions tight = full;
   tight.residual_tolerance = 1e-12;
   tight.step_tolerance = 1e-12;
@@ -198,7 +201,8 @@ json RunRow(const RowSpec& spec, const Settings& settings) {
       json fr = {{"target", t},          {"alpha", alpha},          {"ms", ps.solve_ms},
                  {"full_ms", fs_.solve_ms}, {"finish", ToString(ps.finish)}, {"solved", ps.solved_vertices},
                  {"free", ps.free_vertices}, {"termination", ToString(ps.termination)},
-                 {"note", ps.local_finish_note}, {"newton", ps.newton_iterations}};
+                 {"note", ps.local_finish_note}, {"newton", ps.newton_iterations},
+                 {"span_vectors", ps.span_vectors}};
       if (settings.reference) {
         const SolveSummary rs = tight_solver.Solve(frame, &r);
         const double a = MaxDistance(p, r) / diagonal;
@@ -272,6 +276,7 @@ int main(int argc, char** argv) {
   app.add_option("--shared", settings.shared, "the shared meshes (default: <repo>/../shared/meshes)");
   app.add_option("--out", settings.out, "output directory");
   app.add_flag("!--no-reference", settings.reference, "skip the tight reference (no accuracy column)");
+  app.add_flag("!--no-path-span", settings.span, "path frames without the span step (SolveOptions::path_span_step)");
   app.add_option("--path-intervals", settings.rig.path_intervals, "continuation steps per unit of weight")
       ->check(CLI::Range(1, 256));
   app.add_option("--path-max-samples", settings.rig.path_max_samples, "samples kept per target")

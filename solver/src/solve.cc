@@ -220,24 +220,39 @@ SolveSummary Solver::Impl::Solve(const Frame& frame, Points* positions, const st
     local.max_step_fraction = options_.max_step_fraction;
     local.max_line_search_steps = options_.max_line_search_steps;
     local.max_share = options_.local_finish_share;
-    const auto clock = std::chrono::steady_clock::now();
-    const internal::LocalFinishResult result = internal::LocalFinish(
-        &springs_, held_, diagonal_shift, diagonal, rig.summary().mean_rest_length, local, stop, &x_);
-    timing_.solve_ms += Elapsed(clock);
-    summary.free_vertices = result.free_vertices;
-    minimized.initial_residual = result.initial_residual;
-    minimized.iterations += result.iterations;
-    minimized.line_search_halvings += result.line_search_halvings;
-    if (result.converged) {
-      finished = true;
-      summary.finish = Finish::kLocal;
-      summary.solved_vertices = result.vertices;
-      minimized.termination = internal::MinimizerTermination::kConverged;
-      minimized.residual = result.residual;
-      minimized.last_step = result.last_step;
-      minimized.energy = springs_.Energy(x_);
-    } else {
-      summary.local_finish_note = result.why;
+    for (int attempt = 0; attempt < 2 && !finished; ++attempt) {
+      if (attempt == 1) {
+        // The start is out of balance over too much of the mesh for a local finish: step to the lowest energy
+        // in the span of the path's own vectors around the weight, and try again from there.
+        if (!options_.use_target_paths || !options_.path_span_step) break;
+        if (stop != nullptr && *stop && (*stop)()) break;
+        const auto clock = std::chrono::steady_clock::now();
+        summary.span_vectors = internal::RefineInPathSpan(rig.internals().paths, frame.weights, conditions.motion,
+                                                          options_.residual_tolerance, &springs_, held_,
+                                                          diagonal_shift, &x_);
+        timing_.spring_ms += Elapsed(clock);
+        if (summary.span_vectors == 0) break;
+      }
+      const auto clock = std::chrono::steady_clock::now();
+      const internal::LocalFinishResult result = internal::LocalFinish(
+          &springs_, held_, diagonal_shift, diagonal, rig.summary().mean_rest_length, local, stop, &x_);
+      timing_.solve_ms += Elapsed(clock);
+      summary.free_vertices = result.free_vertices;
+      if (attempt == 0) minimized.initial_residual = result.initial_residual;
+      minimized.iterations += result.iterations;
+      minimized.line_search_halvings += result.line_search_halvings;
+      if (result.converged) {
+        finished = true;
+        summary.finish = Finish::kLocal;
+        summary.solved_vertices = result.vertices;
+        summary.local_finish_note.clear();
+        minimized.termination = internal::MinimizerTermination::kConverged;
+        minimized.residual = result.residual;
+        minimized.last_step = result.last_step;
+        minimized.energy = springs_.Energy(x_);
+      } else {
+        summary.local_finish_note = result.why;
+      }
     }
   }
   if (!finished) {

@@ -206,4 +206,48 @@ void SpringSystem::HessianProduct(const Eigen::VectorXd& v, const std::vector<ch
   });
 }
 
+void SpringSystem::HessianProducts(const Columns& v, const std::vector<char>& held, double shift,
+                                   Columns* product) const {
+  // Per vertex: sum over its springs q of H_q (v_vertex - v_other).
+  const int n = topology_.vertices;
+  const Eigen::Index k = v.cols();
+  product->resize(v.rows(), k);
+  const int* a = topology_.a.data();
+  const int* b = topology_.b.data();
+  const int* offsets = topology_.vertex_spring_offsets.data();
+  const int* incident = topology_.vertex_springs.data();
+  const double* in = v.data();
+  double* out = product->data();
+  tbb::parallel_for(tbb::blocked_range<int>(0, n, kGrain / 8), [&](const tbb::blocked_range<int>& range) {
+    std::vector<double> sum(3 * static_cast<size_t>(k));
+    for (int vtx = range.begin(); vtx != range.end(); ++vtx) {
+      std::fill(sum.begin(), sum.end(), 0.0);
+      const double* here = in + 3 * static_cast<Eigen::Index>(vtx) * k;
+      for (int e = offsets[vtx]; e < offsets[vtx + 1]; ++e) {
+        const int q = incident[e];
+        const int other = a[q] == vtx ? b[q] : a[q];
+        const double* h = &spring_hessian_[6 * static_cast<size_t>(q)];
+        const double* there = in + 3 * static_cast<Eigen::Index>(other) * k;
+        double* s0 = sum.data();
+        double* s1 = s0 + k;
+        double* s2 = s1 + k;
+        for (Eigen::Index j = 0; j < k; ++j) {
+          const double d0 = here[j] - there[j];
+          const double d1 = here[k + j] - there[k + j];
+          const double d2 = here[2 * k + j] - there[2 * k + j];
+          s0[j] += h[0] * d0 + h[1] * d1 + h[2] * d2;
+          s1[j] += h[1] * d0 + h[3] * d1 + h[4] * d2;
+          s2[j] += h[2] * d0 + h[4] * d1 + h[5] * d2;
+        }
+      }
+      for (int c = 0; c < 3; ++c) {
+        const Eigen::Index row = 3 * static_cast<Eigen::Index>(vtx) + c;
+        double* o = out + row * k;
+        const double* x = in + row * k;
+        for (Eigen::Index j = 0; j < k; ++j) o[j] = held[row] ? 0.0 : sum[c * k + j] + shift * x[j];
+      }
+    }
+  });
+}
+
 }  // namespace springblend::internal

@@ -55,6 +55,10 @@ class SpringSystem {
   void HessianProduct(const Eigen::VectorXd& v, const std::vector<char>& held, double shift,
                       Eigen::VectorXd* product);
 
+  // The same for the k columns of v at once (rows are coordinates, row-major so that a vertex's three rows
+  // are contiguous): one pass over each vertex's springs. The sums run in a fixed order per vertex.
+  using Columns = Eigen::Matrix<double, Eigen::Dynamic, Eigen::Dynamic, Eigen::RowMajor>;
+  void HessianProducts(const Columns& v, const std::vector<char>& held, double shift, Columns* product) const;
   const Eigen::VectorXd& force() const { return force_; }
   const Eigen::VectorXd& reaction() const { return reaction_; }
   const SpringTopology& topology() const { return topology_; }

@@ -114,5 +114,38 @@ TEST(SpringSystem, TheMatrixFreeProductEqualsTheAssembledMatrixWithHeldCoordinat
   EXPECT_GT(Eigen::SelfAdjointEigenSolver<Eigen::MatrixXd>(m).eigenvalues().minCoeff(), 0.0);
 }
 
+// The product of several columns at once (the path span step's) equals the one-column product per column,
+// with the true Hessian (compressed springs' negative transverse stiffness kept) and held coordinates.
+TEST(SpringSystem, TheManyColumnProductEqualsTheOneColumnProductPerColumn) {
+  const Cluster c;
+  SpringSystem springs(c.Topology());
+  springs.SetRestLengths(c.rest, c.kinds, {1.0, 1.0, 1.0}, 0.01);
+  std::vector<char> held(3 * c.n, 0);
+  held[3] = held[4] = held[11] = 1;
+  springs.Evaluate(c.x, held, Curvature{}, true);
+  const int k = 5;
+  SpringSystem::Columns v(3 * c.n, k);
+  std::mt19937 rng(11);
+  std::uniform_real_distribution<double> u(-1.0, 1.0);
+  for (Eigen::Index d = 0; d < v.rows(); ++d) {
+    for (int j = 0; j < k; ++j) v(d, j) = u(rng);
+  }
+  const double shift = 0.125;
+  SpringSystem::Columns products;
+  springs.HessianProducts(v, held, shift, &products);
+  ASSERT_EQ(products.rows(), v.rows());
+  ASSERT_EQ(products.cols(), k);
+  Eigen::VectorXd product(3 * c.n);
+  for (int j = 0; j < k; ++j) {
+    springs.HessianProduct(v.col(j), held, shift, &product);
+    EXPECT_LT((products.col(j) - product).lpNorm<Eigen::Infinity>(), 1e-12) << "column " << j;
+  }
+  for (int d = 0; d < 3 * c.n; ++d) {
+    if (held[d]) {
+      EXPECT_EQ(products.row(d).lpNorm<Eigen::Infinity>(), 0.0);
+    }
+  }
+}
+
 }  // namespace
 }  // namespace springblend::internal

@@ -14,6 +14,9 @@
 
 #include "springblend/rig.h"
 #include "springblend/solve.h"
+#include "frame_conditions.h"
+#include "rig_internals.h"
+#include "spring_system.h"
 #include "target_paths.h"
 #include "test_util.h"
 
@@ -196,6 +199,138 @@ TEST(TargetPaths, ALocalFinishSolvesOnlyPartOfTheVertices) {
               << summary.free_vertices << " vertices solved " << summary.local_finish_note << "\n";
   }
   EXPECT_GE(partial, 3);
+}
+
+// A frame's spring system and start (the interpolant, held vertices in place) as the solver sets them up.
+struct FrameStart {
+  explicit FrameStart(const Rig& rig, const std::vector<double>& weights)
+      : springs(internal::TopologyOf(rig)), held(3 * static_cast<size_t>(rig.num_vertices()), 0) {
+    const std::vector<double> shape_weights = rig.ShapeWeights(weights);
+    const Points linear = internal::LinearBlendShapes(rig, shape_weights);
+    std::vector<double> rest_lengths;
+    internal::BlendRestLengths(rig, shape_weights, &rest_lengths);
+    springs.set_length_scale(rig.summary().mean_rest_length);
+    springs.SetRestLengths(std::move(rest_lengths), rig.spring_kind(), internal::KindStiffness(rig.options()),
+                           internal::StiffnessFloor(rig));
+    conditions = internal::ConditionsOf(rig, shape_weights, linear, {});
+    x.resize(3 * linear.rows());
+    for (Eigen::Index v = 0; v < linear.rows(); ++v) x.segment<3>(3 * v) = linear.row(v).transpose();
+    internal::AddPathCorrections(rig.internals().paths, weights, conditions.motion, &x);
+    EXPECT_TRUE(internal::HoldConditions(rig, conditions, &x, &held));
+  }
+  int Refine(const Rig& rig, const std::vector<double>& weights) {
+    return internal::RefineInPathSpan(rig.internals().paths, weights, conditions.motion, 1e-6, &springs, held,
+                                      conditions.diagonal_shift, &x);
+  }
+  internal::SpringSystem springs;
+  std::vector<char> held;
+  internal::FrameConditions conditions;
+  Eigen::VectorXd x;
+};
+
+double Distance(const Eigen::VectorXd& x, const Points& to) {
+  double largest = 0.0;
+  for (Eigen::Index v = 0; v < to.rows(); ++v) largest = std::max(largest, (x.segment<3>(3 * v) - to.row(v).transpose()).norm());
+  return largest;
+}
+
+// The span step on a coarser path (16 steps per unit: its interpolant starts frames out of balance): it lowers
+// the energy, never moves a held coordinate, brings the start closer to the frame's tight equilibrium, is
+// deterministic, and leaves mixes, frames without a path and starts already in balance alone.
+TEST(TargetPaths, TheSpanStepBringsTheStartCloserToTheEquilibrium) {
+  RigOptions coarse;
+  coarse.path_intervals = 16;
+  const auto rig = Cylinder(coarse);
+  const double diagonal = rig->summary().bounding_box_diagonal;
+  Solver tight(rig, Tight());
+  int refined = 0, near = 0;
+  for (int t = 0; t < rig->num_targets(); ++t) {
+    for (double a : {0.3, 0.62, 0.9, 1.1}) {
+      std::vector<double> weights(rig->num_targets(), 0.0);
+      weights[t] = a;
+      Points reference;
+      ASSERT_TRUE(tight.Solve(Frame{weights}, &reference).converged());
+      const Points& all = tight.all_positions();
+      FrameStart start(*rig, weights);
+      const Eigen::VectorXd before = start.x;
+      const double energy = start.springs.Energy(before);
+      const double residual = start.springs.Evaluate(before, start.held, internal::Curvature{}, false);
+      const int vectors = start.Refine(*rig, weights);
+      const std::string where = "target " + std::to_string(t) + " alpha " + std::to_string(a);
+      if (vectors == 0) {
+        EXPECT_EQ(start.x, before) << where;
+        continue;
+      }
+      ++refined;
+      EXPECT_GT(residual, 1e-6) << where;
+      EXPECT_LE(vectors, 8) << where;  // two samples and their tangents either side of the interval, at most
+      EXPECT_LT(start.springs.Energy(start.x), energy) << where;
+      for (size_t d = 0; d < start.held.size(); ++d) {
+        if (start.held[d]) {
+          ASSERT_EQ(start.x[static_cast<Eigen::Index>(d)], before[static_cast<Eigen::Index>(d)]) << where;
+        }
+      }
+      // Where the start is near the tight equilibrium (on its branch: the twist wrinkles, and far from its
+      // samples a frame's tight solve may settle elsewhere), the step brings it at least ten times closer.
+      const double from = Distance(before, all) / diagonal, to = Distance(start.x, all) / diagonal;
+      if (from < 1e-4) {
+        ++near;
+        EXPECT_LT(to, 0.1 * from) << where << ": " << from << " -> " << to << " of the diagonal";
+      }
+      std::cout << where << ": " << vectors << " vectors, " << from << " -> " << to << " of the diagonal\n";
+      FrameStart again(*rig, weights);
+      EXPECT_EQ(again.Refine(*rig, weights), vectors);
+      EXPECT_EQ(again.x, start.x) << where;
+    }
+  }
+  EXPECT_GE(refined, 6);
+  EXPECT_GE(near, 5);
+  // A mix moves two targets: its equilibrium is in neither path's span.
+  FrameStart mix(*rig, {0.3, 0.6});
+  const Eigen::VectorXd before = mix.x;
+  EXPECT_EQ(mix.Refine(*rig, {0.3, 0.6}), 0);
+  EXPECT_EQ(mix.x, before);
+  // On a sample (the target itself) the start is in balance already.
+  FrameStart full(*rig, {1.0, 0.0});
+  EXPECT_EQ(full.Refine(*rig, {1.0, 0.0}), 0);
+}
+
+// With the local finish limited to 5 % of the mesh, it gives up on most of the coarser path's frames; the span
+// step then starts them close enough for the second try to finish more of them locally, at the same answers.
+TEST(TargetPaths, TheSpanStepLetsMoreFramesFinishLocally) {
+  RigOptions coarse;
+  coarse.path_intervals = 16;
+  const auto rig = Cylinder(coarse);
+  const double diagonal = rig->summary().bounding_box_diagonal;
+  SolveOptions with;
+  with.local_finish_share = 0.05;
+  SolveOptions without = with;
+  without.path_span_step = false;
+  Solver span(rig, with), plain(rig, without), tight(rig, Tight());
+  int local_with = 0, local_without = 0, stepped = 0;
+  for (int t = 0; t < rig->num_targets(); ++t) {
+    for (double a : {0.15, 0.3, 0.45, 0.62, 0.77, 0.9, 1.1, -0.1}) {
+      std::vector<double> weights(rig->num_targets(), 0.0);
+      weights[t] = a;
+      Points x, y, reference;
+      const SolveSummary s = span.Solve(Frame{weights}, &x);
+      const SolveSummary p = plain.Solve(Frame{weights}, &y);
+      ASSERT_TRUE(s.converged() && p.converged()) << s.message << " / " << p.message;
+      ASSERT_TRUE(tight.Solve(Frame{weights}, &reference).converged());
+      EXPECT_LE(MaxDistance(x, reference) / diagonal, 1e-6) << "target " << t << " alpha " << a;
+      EXPECT_EQ(p.span_vectors, 0);
+      local_with += s.finish == Finish::kLocal ? 1 : 0;
+      local_without += p.finish == Finish::kLocal ? 1 : 0;
+      stepped += s.span_vectors > 0 ? 1 : 0;
+      if (s.span_vectors > 0) {
+        EXPECT_NE(p.finish, Finish::kLocal) << "the span step is only tried after a local finish gave up";
+      }
+    }
+  }
+  std::cout << "finished locally: " << local_with << " with the span step, " << local_without << " without; "
+            << stepped << " frames stepped\n";
+  EXPECT_GT(stepped, 0);
+  EXPECT_GT(local_with, local_without);
 }
 
 TEST(TargetPaths, LocalFinishOffGivesTheSameEquilibrium) {
