@@ -198,6 +198,84 @@ Stencil StencilAt(const TargetPath& path, double alpha) {
   return stencil;
 }
 
+// The samples of the path's smooth piece around alpha, up to kSpanReach on either side of its interval, and
+// their exact tangents.
+std::vector<const Eigen::MatrixXf*> SpanAround(const TargetPath& path, double alpha) {
+  const std::vector<double>& a = path.alphas;
+  const int count = path.samples();
+  const int i = std::clamp(static_cast<int>(std::upper_bound(a.begin(), a.end(), alpha) - a.begin()) - 1, 0, count - 1);
+  int first = i, last = std::min(i + 1, count - 1);
+  if (last > first && Broken(path.certified[first])) last = first;
+  while (first > 0 && first > i - kSpanReach + 1 && !Broken(path.certified[first - 1])) --first;
+  while (last + 1 < count && last < i + kSpanReach && !Broken(path.certified[last])) ++last;
+  std::vector<const Eigen::MatrixXf*> columns;
+  for (int k = first; k <= last; ++k) {
+    columns.push_back(&path.corrections[k]);
+    if (HasTangent(path, k)) columns.push_back(&path.tangents[k]);
+  }
+  return columns;
+}
+
+// Column j of w: a correction (anchor's frame, #vertices by 3) in the frame's world, rotated by the anchor's
+// motion.
+template <typename Matrix>
+void FillColumn(const Matrix& c, const std::optional<AnchorMotion>& motion, SpringSystem::Columns* w, int j) {
+  const Eigen::Matrix3d r = motion ? motion->rotation.toRotationMatrix() : Eigen::Matrix3d::Identity();
+  for (Eigen::Index v = 0; v < c.rows(); ++v) {
+    w->col(j).segment<3>(3 * v) = r * c.row(v).transpose().template cast<double>();
+  }
+}
+
+// One Newton step from x on the coefficients of w's columns (the reduced true Hessian from the blocks of the
+// springs' last Evaluate at x), line-searched on the energy: x moves only to lower energy. Returns the span's
+// dimension, or 0 when x did not move.
+int StepInSpan(SpringSystem::Columns w, SpringSystem* springs, const std::vector<char>& held, double diagonal_shift,
+               Eigen::VectorXd* x) {
+  const Eigen::Index m = x->size();
+  const int k = static_cast<int>(w.cols());
+  if (k == 0) return 0;
+  for (Eigen::Index d = 0; d < m; ++d) {
+    if (held[d]) w.row(d).setZero();
+  }
+  // Coordinates of the span: the eigenvectors of the Gram matrix (its columns scaled to unit length), the
+  // nearly dependent directions (a relative singular value below 1e-7: the samples' float rounding) dropped.
+  const Eigen::MatrixXd gram = w.transpose() * w;
+  Eigen::VectorXd scale(k);
+  for (int j = 0; j < k; ++j) scale[j] = gram(j, j) > 0.0 ? 1.0 / std::sqrt(gram(j, j)) : 0.0;
+  const Eigen::SelfAdjointEigenSolver<Eigen::MatrixXd> eigen(scale.asDiagonal() * gram * scale.asDiagonal());
+  if (eigen.info() != Eigen::Success) return 0;
+  const double largest = eigen.eigenvalues().maxCoeff();
+  std::vector<int> kept;
+  for (int j = 0; j < k; ++j) {
+    if (eigen.eigenvalues()[j] > 1e-14 * largest) kept.push_back(j);
+  }
+  if (kept.empty()) return 0;
+  Eigen::MatrixXd to(k, static_cast<Eigen::Index>(kept.size()));  // the coordinates' coefficients of the vectors
+  for (size_t j = 0; j < kept.size(); ++j) {
+    to.col(static_cast<Eigen::Index>(j)) =
+        scale.asDiagonal() * eigen.eigenvectors().col(kept[j]) / std::sqrt(eigen.eigenvalues()[kept[j]]);
+  }
+  SpringSystem::Columns hw;
+  springs->HessianProducts(w, held, diagonal_shift, &hw);
+  const Eigen::MatrixXd reduced = to.transpose() * (w.transpose() * hw) * to;
+  const Eigen::VectorXd g = to.transpose() * (w.transpose() * springs->force());
+  const Eigen::LLT<Eigen::MatrixXd> llt(0.5 * (reduced + reduced.transpose()));
+  if (llt.info() != Eigen::Success) return 0;
+  const Eigen::VectorXd step = w * (to * llt.solve(g));
+  if (!step.allFinite()) return 0;
+  const double energy = springs->Energy(*x);
+  Eigen::VectorXd trial(m);
+  double length = 1.0;
+  for (int halving = 0; halving < kSpanHalvings; ++halving, length *= 0.5) {
+    trial = *x + length * step;
+    if (springs->Energy(trial) < energy) {
+      x->swap(trial);
+      return static_cast<int>(kept.size());
+    }
+  }
+  return 0;
+}
+
 struct Sample {
   double alpha = 0.0;
   Eigen::MatrixXf correction;  // anchor's frame
@@ -1015,75 +1093,13 @@ int RefineInPathSpan(const std::vector<TargetPath>& paths, const std::vector<dou
     moved = static_cast<int>(t);
   }
   if (moved < 0 || static_cast<size_t>(moved) >= paths.size() || paths[moved].empty()) return 0;
-  const TargetPath& path = paths[moved];
-  // The samples of the path's smooth piece around the weight, up to kSpanReach on either side of its interval,
-  // and their exact tangents.
-  const std::vector<double>& a = path.alphas;
-  const int count = path.samples();
-  const int i = std::clamp(static_cast<int>(std::upper_bound(a.begin(), a.end(), weights[moved]) - a.begin()) - 1,
-                           0, count - 1);
-  int first = i, last = std::min(i + 1, count - 1);
-  if (last > first && Broken(path.certified[first])) last = first;
-  while (first > 0 && first > i - kSpanReach + 1 && !Broken(path.certified[first - 1])) --first;
-  while (last + 1 < count && last < i + kSpanReach && !Broken(path.certified[last])) ++last;
-  std::vector<const Eigen::MatrixXf*> columns;
-  for (int k = first; k <= last; ++k) {
-    columns.push_back(&path.corrections[k]);
-    if (HasTangent(path, k)) columns.push_back(&path.tangents[k]);
-  }
+  const std::vector<const Eigen::MatrixXf*> columns = SpanAround(paths[moved], weights[moved]);
   const double start_residual = springs->Evaluate(*x, held, Curvature{}, true);
   if (!(start_residual > residual_tolerance)) return 0;
-  // The vectors in the frame's world (rotated by the anchor's motion), zero on the held coordinates.
-  const Eigen::Index m = x->size();
   const int k = static_cast<int>(columns.size());
-  SpringSystem::Columns w(m, k);
-  const Eigen::Matrix3d r = motion ? motion->rotation.toRotationMatrix() : Eigen::Matrix3d::Identity();
-  for (int j = 0; j < k; ++j) {
-    const Eigen::MatrixXf& c = *columns[j];
-    for (Eigen::Index v = 0; v < m / 3; ++v) w.col(j).segment<3>(3 * v) = r * c.row(v).transpose().cast<double>();
-  }
-  for (Eigen::Index d = 0; d < m; ++d) {
-    if (held[d]) w.row(d).setZero();
-  }
-  // Coordinates of the span: the eigenvectors of the Gram matrix (its columns scaled to unit length), the
-  // nearly dependent directions (a relative singular value below 1e-7: the samples' float rounding) dropped.
-  const Eigen::MatrixXd gram = w.transpose() * w;
-  Eigen::VectorXd scale(k);
-  for (int j = 0; j < k; ++j) scale[j] = gram(j, j) > 0.0 ? 1.0 / std::sqrt(gram(j, j)) : 0.0;
-  const Eigen::SelfAdjointEigenSolver<Eigen::MatrixXd> eigen(scale.asDiagonal() * gram * scale.asDiagonal());
-  if (eigen.info() != Eigen::Success) return 0;
-  const double largest = eigen.eigenvalues().maxCoeff();
-  std::vector<int> kept;
-  for (int j = 0; j < k; ++j) {
-    if (eigen.eigenvalues()[j] > 1e-14 * largest) kept.push_back(j);
-  }
-  if (kept.empty()) return 0;
-  Eigen::MatrixXd to(k, static_cast<Eigen::Index>(kept.size()));  // the coordinates' coefficients of the vectors
-  for (size_t j = 0; j < kept.size(); ++j) {
-    to.col(static_cast<Eigen::Index>(j)) =
-        scale.asDiagonal() * eigen.eigenvectors().col(kept[j]) / std::sqrt(eigen.eigenvalues()[kept[j]]);
-  }
-  // One Newton step on the coordinates, with the true Hessian (the start is close to a minimum on a smooth
-  // piece of the path), line-searched on the energy.
-  SpringSystem::Columns hw;
-  springs->HessianProducts(w, held, diagonal_shift, &hw);
-  const Eigen::MatrixXd reduced = to.transpose() * (w.transpose() * hw) * to;
-  const Eigen::VectorXd g = to.transpose() * (w.transpose() * springs->force());
-  const Eigen::LLT<Eigen::MatrixXd> llt(0.5 * (reduced + reduced.transpose()));
-  if (llt.info() != Eigen::Success) return 0;
-  const Eigen::VectorXd step = w * (to * llt.solve(g));
-  if (!step.allFinite()) return 0;
-  const double energy = springs->Energy(*x);
-  Eigen::VectorXd trial(m);
-  double length = 1.0;
-  for (int halving = 0; halving < kSpanHalvings; ++halving, length *= 0.5) {
-    trial = *x + length * step;
-    if (springs->Energy(trial) < energy) {
-      x->swap(trial);
-      return static_cast<int>(kept.size());
-    }
-  }
-  return 0;
+  SpringSystem::Columns w(x->size(), k);
+  for (int j = 0; j < k; ++j) FillColumn(*columns[j], motion, &w, j);
+  return StepInSpan(std::move(w), springs, held, diagonal_shift, x);
 }
 
 namespace {
