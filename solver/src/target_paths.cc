@@ -1084,8 +1084,8 @@ void AddPathCorrections(const std::vector<TargetPath>& paths, const std::vector<
 }
 
 int RefineInPathSpan(const std::vector<TargetPath>& paths, const std::vector<double>& weights,
-                     const std::optional<AnchorMotion>& motion, double residual_tolerance, SpringSystem* springs,
-                     const std::vector<char>& held, double diagonal_shift, Eigen::VectorXd* x) {
+                     const std::optional<AnchorMotion>& motion, double residual_tolerance, double min_share,
+                     SpringSystem* springs, const std::vector<char>& held, double diagonal_shift, Eigen::VectorXd* x) {
   int moved = -1;
   for (size_t t = 0; t < weights.size(); ++t) {
     if (weights[t] == 0.0) continue;
@@ -1096,6 +1096,15 @@ int RefineInPathSpan(const std::vector<TargetPath>& paths, const std::vector<dou
   const std::vector<const Eigen::MatrixXf*> columns = SpanAround(paths[moved], weights[moved]);
   const double start_residual = springs->Evaluate(*x, held, Curvature{}, true);
   if (!(start_residual > residual_tolerance)) return 0;
+  if (min_share > 0.0) {
+    const Eigen::VectorXd& f = springs->force();
+    int out = 0, free = 0;
+    for (Eigen::Index v = 0; v < f.size() / 3; ++v) {
+      free += held[3 * v] && held[3 * v + 1] && held[3 * v + 2] ? 0 : 1;
+      out += f.segment<3>(3 * v).cwiseAbs().maxCoeff() > residual_tolerance ? 1 : 0;
+    }
+    if (out <= min_share * free) return 0;
+  }
   const int k = static_cast<int>(columns.size());
   SpringSystem::Columns w(x->size(), k);
   for (int j = 0; j < k; ++j) FillColumn(*columns[j], motion, &w, j);
