@@ -240,11 +240,19 @@ SolveSummary Solver::Impl::Solve(const Frame& frame, Points* positions, const st
       return summary.span_vectors > 0;
     };
     if (span) span_step(kSpanFirstShare);
+    // A local finish that gave up leaves its region part way to balance, and its forces below the tolerance
+    // do not say how far: the second try starts from the frame's start again.
+    const Eigen::VectorXd start = span && summary.span_vectors == 0 ? x_ : Eigen::VectorXd();
     for (int attempt = 0; attempt < 2 && !finished; ++attempt) {
       if (attempt == 1) {
         if (!span || summary.span_vectors > 0) break;
         if (stop != nullptr && *stop && (*stop)()) break;
-        if (!span_step(0.0)) break;
+        const Eigen::VectorXd given_up = x_;
+        x_ = start;
+        if (!span_step(0.0)) {
+          x_ = given_up;  // the full solve goes on from the lower energy
+          break;
+        }
       }
       const auto clock = std::chrono::steady_clock::now();
       const internal::LocalFinishResult result = internal::LocalFinish(
