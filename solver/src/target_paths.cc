@@ -1094,7 +1094,8 @@ int RefineInPathSpan(const std::vector<TargetPath>& paths, const std::vector<dou
   }
   if (moved < 0 || static_cast<size_t>(moved) >= paths.size() || paths[moved].empty()) return 0;
   const std::vector<const Eigen::MatrixXf*> columns = SpanAround(paths[moved], weights[moved]);
-  const double start_residual = springs->Evaluate(*x, held, Curvature{}, true);
+  // The forces first (the Hessian blocks only once the step is taken: most path frames start in balance).
+  const double start_residual = springs->Evaluate(*x, held, Curvature{}, false);
   if (!(start_residual > residual_tolerance)) return 0;
   if (min_share > 0.0) {
     const Eigen::VectorXd& f = springs->force();
@@ -1105,6 +1106,7 @@ int RefineInPathSpan(const std::vector<TargetPath>& paths, const std::vector<dou
     }
     if (out <= min_share * free) return 0;
   }
+  springs->Evaluate(*x, held, Curvature{}, true);
   const int k = static_cast<int>(columns.size());
   SpringSystem::Columns w(x->size(), k);
   for (int j = 0; j < k; ++j) FillColumn(*columns[j], motion, &w, j);
