@@ -237,10 +237,18 @@ double Distance(const Eigen::VectorXd& x, const Points& to) {
 // The span step on a coarser path (16 steps per unit: its interpolant starts frames out of balance): it lowers
 // the energy, never moves a held coordinate, brings the start closer to the frame's tight equilibrium, is
 // deterministic, and leaves mixes, frames without a path and starts already in balance alone.
+// The cylinder with paths of 16 steps per unit (built once for the span step's tests).
+const std::shared_ptr<const Rig>& CoarserCylinder() {
+  static const std::shared_ptr<const Rig> rig = [] {
+    RigOptions coarser;
+    coarser.path_intervals = 16;
+    return Cylinder(coarser);
+  }();
+  return rig;
+}
+
 TEST(TargetPaths, TheSpanStepBringsTheStartCloserToTheEquilibrium) {
-  RigOptions coarse;
-  coarse.path_intervals = 16;
-  const auto rig = Cylinder(coarse);
+  const auto& rig = CoarserCylinder();
   const double diagonal = rig->summary().bounding_box_diagonal;
   Solver tight(rig, Tight());
   int refined = 0, near = 0;
@@ -298,9 +306,7 @@ TEST(TargetPaths, TheSpanStepBringsTheStartCloserToTheEquilibrium) {
 // With the local finish limited to 5 % of the mesh, it gives up on most of the coarser path's frames; the span
 // step then starts them close enough for the second try to finish more of them locally, at the same answers.
 TEST(TargetPaths, TheSpanStepLetsMoreFramesFinishLocally) {
-  RigOptions coarse;
-  coarse.path_intervals = 16;
-  const auto rig = Cylinder(coarse);
+  const auto& rig = CoarserCylinder();
   const double diagonal = rig->summary().bounding_box_diagonal;
   SolveOptions with;
   with.local_finish_share = 0.05;
