@@ -107,12 +107,13 @@ struct SolveOptions {
   // whose start is out of balance nearly everywhere costs one force pass more. Range of the share (0, 1].
   bool local_finish = true;
   double local_finish_share = 0.15;
-  // Where that local finish gives up on a frame that moves one target (its in-betweens included), the frame
-  // takes one Newton step in the span of its path's samples and exact tangents around its weight (two samples
-  // either side of its interval on the path's smooth piece), the lowest energy there: a Galerkin projection of
-  // the frame's equilibrium onto the path's own vectors, much closer to it than the interpolant. The local
-  // finish is then tried once more before a full solve (face jawOpen: 15 of 17 off-sample frames finished
-  // locally against 13). Costs about one Hessian product per vector; only ever lowers the energy.
+  // A frame that moves one target (its in-betweens included) and that the local finish gives up on, or that
+  // starts out of balance at more than 1 % of its free vertices, takes one Newton step in the span of its
+  // path's samples and exact tangents around its weight (two samples either side of its interval on the path's
+  // smooth piece), the lowest energy there: a Galerkin projection of the frame's equilibrium onto the path's
+  // own vectors, much closer to it than the interpolant. The local finish is then tried (again, from the
+  // frame's start) before a full solve (face jawOpen: 15 of 17 off-sample frames finished locally against 13).
+  // Costs about one Hessian product per vector; only ever lowers the energy.
   bool path_span_step = true;
   // Contact rounds per frame (solve, catch penetrating vertices, solve again) before giving up. [1, 1000]
   int max_contact_rounds = 30;
