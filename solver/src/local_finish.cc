@@ -284,6 +284,10 @@ LocalFinishResult LocalFinish(SpringSystem* springs, const std::vector<char>& he
   for (int v = 0; v < n; ++v) {
     if (movable[v] && out_of_balance(v)) seeds.push_back(v);
   }
+  if (seeds.size() > options.max_seed_share * result.free_vertices) {
+    result.why = "out of balance at too many vertices to start";
+    return result;
+  }
   grow(seeds, 1);
   RegionNewton newton(springs, held, diagonal_shift, diagonal, mean_rest_length, options, stop, &result);
   for (;;) {

@@ -24,6 +24,9 @@ struct LocalFinishOptions {
   int max_iterations = 15;           // Newton iterations over all rounds
   int max_rounds = 6;                // region growths
   double max_share = 0.3;            // of the free vertices; beyond it a full solve is cheaper
+  // Gives up at once, x untouched, when more than this share of the free vertices starts out of balance (for
+  // a caller with a cheaper remedy for such a start: the path span step).
+  double max_seed_share = 1.0;
 };
 
 struct LocalFinishResult {

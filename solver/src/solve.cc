@@ -229,34 +229,33 @@ SolveSummary Solver::Impl::Solve(const Frame& frame, Points* positions, const st
     local.max_line_search_steps = options_.max_line_search_steps;
     local.max_share = options_.local_finish_share;
     // The span step: first where the start is out of balance at many vertices (a local region that large
-    // costs more than the step), else only once a local finish gave up.
-    const bool span = options_.use_target_paths && options_.path_span_step;
-    const auto span_step = [&](double min_share) {
-      const auto clock = std::chrono::steady_clock::now();
-      summary.span_vectors = internal::RefineInPathSpan(rig.internals().paths, frame.weights, conditions.motion,
-                                                        options_.residual_tolerance, min_share, &springs_, held_,
-                                                        diagonal_shift, &x_);
-      timing_.spring_ms += Elapsed(clock);
-      return summary.span_vectors > 0;
-    };
-    if (span) span_step(kSpanFirstShare);
-    // A local finish that gave up leaves its region part way to balance, and its forces below the tolerance
-    // do not say how far: the second try starts from the frame's start again.
-    const Eigen::VectorXd start = span && summary.span_vectors == 0 ? x_ : Eigen::VectorXd();
+    // costs more than the step: the local finish gives up at once), else once a local finish gave up; the
+    // second try starts from the frame's start again (a region a try left part way to balance has forces
+    // below the tolerance but not its error).
+    const bool span = options_.use_target_paths && options_.path_span_step &&
+                      internal::HasPathSpan(rig.internals().paths, frame.weights);
+    const Eigen::VectorXd start = span ? x_ : Eigen::VectorXd();
     for (int attempt = 0; attempt < 2 && !finished; ++attempt) {
+      internal::LocalFinishOptions here = local;
+      if (attempt == 0 && span) here.max_seed_share = kSpanFirstShare;
       if (attempt == 1) {
-        if (!span || summary.span_vectors > 0) break;
+        if (!span) break;
         if (stop != nullptr && *stop && (*stop)()) break;
         const Eigen::VectorXd given_up = x_;
         x_ = start;
-        if (!span_step(0.0)) {
+        const auto clock = std::chrono::steady_clock::now();
+        summary.span_vectors = internal::RefineInPathSpan(rig.internals().paths, frame.weights, conditions.motion,
+                                                          options_.residual_tolerance, &springs_, held_,
+                                                          diagonal_shift, &x_);
+        timing_.spring_ms += Elapsed(clock);
+        if (summary.span_vectors == 0) {
           x_ = given_up;  // the full solve goes on from the lower energy
           break;
         }
       }
       const auto clock = std::chrono::steady_clock::now();
       const internal::LocalFinishResult result = internal::LocalFinish(
-          &springs_, held_, diagonal_shift, diagonal, rig.summary().mean_rest_length, local, stop, &x_);
+          &springs_, held_, diagonal_shift, diagonal, rig.summary().mean_rest_length, here, stop, &x_);
       timing_.solve_ms += Elapsed(clock);
       summary.free_vertices = result.free_vertices;
       if (attempt == 0) minimized.initial_residual = result.initial_residual;

@@ -1083,29 +1083,35 @@ void AddPathCorrections(const std::vector<TargetPath>& paths, const std::vector<
   for (Eigen::Index v = 0; v < n; ++v) x->segment<3>(3 * v) += sum.row(v).transpose();
 }
 
-int RefineInPathSpan(const std::vector<TargetPath>& paths, const std::vector<double>& weights,
-                     const std::optional<AnchorMotion>& motion, double residual_tolerance, double min_share,
-                     SpringSystem* springs, const std::vector<char>& held, double diagonal_shift, Eigen::VectorXd* x) {
+namespace {
+
+// The one target a frame moves, or -1.
+int MovedTarget(const std::vector<double>& weights) {
   int moved = -1;
   for (size_t t = 0; t < weights.size(); ++t) {
     if (weights[t] == 0.0) continue;
-    if (moved >= 0) return 0;  // a mix: its equilibrium is not in one path's span
+    if (moved >= 0) return -1;  // a mix: its equilibrium is not in one path's span
     moved = static_cast<int>(t);
   }
-  if (moved < 0 || static_cast<size_t>(moved) >= paths.size() || paths[moved].empty()) return 0;
+  return moved;
+}
+
+}  // namespace
+
+bool HasPathSpan(const std::vector<TargetPath>& paths, const std::vector<double>& weights) {
+  const int moved = MovedTarget(weights);
+  return moved >= 0 && static_cast<size_t>(moved) < paths.size() && !paths[moved].empty();
+}
+
+int RefineInPathSpan(const std::vector<TargetPath>& paths, const std::vector<double>& weights,
+                     const std::optional<AnchorMotion>& motion, double residual_tolerance, SpringSystem* springs,
+                     const std::vector<char>& held, double diagonal_shift, Eigen::VectorXd* x) {
+  if (!HasPathSpan(paths, weights)) return 0;
+  const int moved = MovedTarget(weights);
   const std::vector<const Eigen::MatrixXf*> columns = SpanAround(paths[moved], weights[moved]);
-  // The forces first (the Hessian blocks only once the step is taken: most path frames start in balance).
+  // The forces first (the Hessian blocks only once the step is taken).
   const double start_residual = springs->Evaluate(*x, held, Curvature{}, false);
   if (!(start_residual > residual_tolerance)) return 0;
-  if (min_share > 0.0) {
-    const Eigen::VectorXd& f = springs->force();
-    int out = 0, free = 0;
-    for (Eigen::Index v = 0; v < f.size() / 3; ++v) {
-      free += held[3 * v] && held[3 * v + 1] && held[3 * v + 2] ? 0 : 1;
-      out += f.segment<3>(3 * v).cwiseAbs().maxCoeff() > residual_tolerance ? 1 : 0;
-    }
-    if (out <= min_share * free) return 0;
-  }
   springs->Evaluate(*x, held, Curvature{}, true);
   const int k = static_cast<int>(columns.size());
   SpringSystem::Columns w(x->size(), k);

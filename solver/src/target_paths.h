@@ -95,15 +95,18 @@ void EvaluatePath(const TargetPath& path, double alpha, Eigen::MatrixXd* correct
 void AddPathCorrections(const std::vector<TargetPath>& paths, const std::vector<double>& weights,
                         const std::optional<AnchorMotion>& motion, Eigen::VectorXd* x);
 
+// Whether a frame with these weights moves one target only, and that target has a path (RefineInPathSpan's
+// frames).
+bool HasPathSpan(const std::vector<TargetPath>& paths, const std::vector<double>& weights);
+
 // A single-target frame's start x (stacked 3n, held coordinates in place) moved to the lowest energy in the
 // span of its path's samples and exact tangents around its weight: one Newton step on their coefficients (the
 // reduced Hessian from `springs`, which holds the frame's rest lengths), line-searched on the energy, so the
-// energy only ever falls. Nothing is done for a frame that moves more than one target, a target without a
-// path, a start already within `residual_tolerance` (largest free force), or one out of balance at no more than
-// `min_share` of its free vertices. Returns the span's dimension (0: nothing done).
+// energy only ever falls. Nothing is done unless HasPathSpan, or for a start already within
+// `residual_tolerance` (largest free force). Returns the span's dimension (0: nothing done).
 int RefineInPathSpan(const std::vector<TargetPath>& paths, const std::vector<double>& weights,
-                     const std::optional<AnchorMotion>& motion, double residual_tolerance, double min_share,
-                     SpringSystem* springs, const std::vector<char>& held, double diagonal_shift, Eigen::VectorXd* x);
+                     const std::optional<AnchorMotion>& motion, double residual_tolerance, SpringSystem* springs,
+                     const std::vector<char>& held, double diagonal_shift, Eigen::VectorXd* x);
 
 // The paths as bytes (versioned, little-endian) and back. Parse returns nullopt, with the reason in *why, when
 // the bytes are not paths of this rig (version, target count, vertex count, sizes).

@@ -219,8 +219,8 @@ struct FrameStart {
     EXPECT_TRUE(internal::HoldConditions(rig, conditions, &x, &held));
   }
   int Refine(const Rig& rig, const std::vector<double>& weights) {
-    return internal::RefineInPathSpan(rig.internals().paths, weights, conditions.motion, 1e-6, 0.0, &springs,
-                                      held, conditions.diagonal_shift, &x);
+    return internal::RefineInPathSpan(rig.internals().paths, weights, conditions.motion, 1e-6, &springs, held,
+                                      conditions.diagonal_shift, &x);
   }
   internal::SpringSystem springs;
   std::vector<char> held;
@@ -296,6 +296,8 @@ TEST(TargetPaths, TheSpanStepBringsTheStartCloserToTheEquilibrium) {
   // A mix moves two targets: its equilibrium is in neither path's span.
   FrameStart mix(*rig, {0.3, 0.6});
   const Eigen::VectorXd before = mix.x;
+  EXPECT_FALSE(internal::HasPathSpan(rig->internals().paths, {0.3, 0.6}));
+  EXPECT_TRUE(internal::HasPathSpan(rig->internals().paths, {0.3, 0.0}));
   EXPECT_EQ(mix.Refine(*rig, {0.3, 0.6}), 0);
   EXPECT_EQ(mix.x, before);
   // On a sample (the target itself) the start is in balance already.
