@@ -234,7 +234,7 @@ SolveSummary Solver::Impl::Solve(const Frame& frame, Points* positions, const st
     // below the tolerance but not its error).
     const bool span = options_.use_target_paths && options_.path_span_step &&
                       internal::HasPathSpan(rig.internals().paths, frame.weights);
-    const Eigen::VectorXd start = span ? x_ : Eigen::VectorXd();
+    const Eigen::VectorXd frame_start = span ? x_ : Eigen::VectorXd();
     for (int attempt = 0; attempt < 2 && !finished; ++attempt) {
       internal::LocalFinishOptions here = local;
       if (attempt == 0 && span) here.max_seed_share = kSpanFirstShare;
@@ -242,7 +242,7 @@ SolveSummary Solver::Impl::Solve(const Frame& frame, Points* positions, const st
         if (!span) break;
         if (stop != nullptr && *stop && (*stop)()) break;
         const Eigen::VectorXd given_up = x_;
-        x_ = start;
+        x_ = frame_start;
         const auto clock = std::chrono::steady_clock::now();
         summary.span_vectors = internal::RefineInPathSpan(rig.internals().paths, frame.weights, conditions.motion,
                                                           options_.residual_tolerance, &springs_, held_,

@@ -40,7 +40,8 @@ constexpr std::uint8_t kSwitch = 2;
 constexpr std::uint8_t kFold = 3;
 // Solved steps at multiples of 1 / kKeptGrid are always kept.
 constexpr double kKeptGrid = 8.0;
-constexpr char kPathsMagic[8] = {'S', 'B', 'P', 'A', 'T', 'H', '0', '3'};
+constexpr char kPathsMagic[8] = {'S', 'B', 'P', 'A', 'T', 'H', '0', '4'};
+constexpr char kPathsMagicV3[8] = {'S', 'B', 'P', 'A', 'T', 'H', '0', '3'};  // floats; still read
 constexpr char kPathsMagicV2[8] = {'S', 'B', 'P', 'A', 'T', 'H', '0', '2'};  // no tangents; still read
 // Exact tangents: the central difference step in alpha of the forces and of the correction's map (their
 // truncation error is of order step^2), the conjugate gradients' relative residual, and their cap (a sample
@@ -114,7 +115,7 @@ struct Stencil {
 };
 
 bool HasTangent(const TargetPath& path, int k) {
-  return static_cast<size_t>(k) < path.tangents.size() && path.tangents[k].size() > 0;
+  return static_cast<size_t>(k) < path.tangents.size() && !path.tangents[k].empty();
 }
 
 // An interval between two branches (a switch, a fold): no tangent carries across it.
@@ -200,7 +201,7 @@ Stencil StencilAt(const TargetPath& path, double alpha) {
 
 // The samples of the path's smooth piece around alpha, up to kSpanReach on either side of its interval, and
 // their exact tangents.
-std::vector<const Eigen::MatrixXf*> SpanAround(const TargetPath& path, double alpha) {
+std::vector<const PathField*> SpanAround(const TargetPath& path, double alpha) {
   const std::vector<double>& a = path.alphas;
   const int count = path.samples();
   const int i = std::clamp(static_cast<int>(std::upper_bound(a.begin(), a.end(), alpha) - a.begin()) - 1, 0, count - 1);
@@ -208,7 +209,7 @@ std::vector<const Eigen::MatrixXf*> SpanAround(const TargetPath& path, double al
   if (last > first && Broken(path.certified[first])) last = first;
   while (first > 0 && first > i - kSpanReach + 1 && !Broken(path.certified[first - 1])) --first;
   while (last + 1 < count && last < i + kSpanReach && !Broken(path.certified[last])) ++last;
-  std::vector<const Eigen::MatrixXf*> columns;
+  std::vector<const PathField*> columns;
   for (int k = first; k <= last; ++k) {
     columns.push_back(&path.corrections[k]);
     if (HasTangent(path, k)) columns.push_back(&path.tangents[k]);
@@ -218,12 +219,10 @@ std::vector<const Eigen::MatrixXf*> SpanAround(const TargetPath& path, double al
 
 // Column j of w: a correction (anchor's frame, #vertices by 3) in the frame's world, rotated by the anchor's
 // motion.
-template <typename Matrix>
-void FillColumn(const Matrix& c, const std::optional<AnchorMotion>& motion, SpringSystem::Columns* w, int j) {
+void FillColumn(const PathField& field, const std::optional<AnchorMotion>& motion, SpringSystem::Columns* w, int j) {
   const Eigen::Matrix3d r = motion ? motion->rotation.toRotationMatrix() : Eigen::Matrix3d::Identity();
-  for (Eigen::Index v = 0; v < c.rows(); ++v) {
-    w->col(j).segment<3>(3 * v) = r * c.row(v).transpose().template cast<double>();
-  }
+  const Eigen::MatrixXd c = field.Decode();
+  for (Eigen::Index v = 0; v < c.rows(); ++v) w->col(j).segment<3>(3 * v) = r * c.row(v).transpose();
 }
 
 // One Newton step from x on the coefficients of w's columns (the reduced true Hessian from the blocks of the
@@ -238,7 +237,7 @@ int StepInSpan(SpringSystem::Columns w, SpringSystem* springs, const std::vector
     if (held[d]) w.row(d).setZero();
   }
   // Coordinates of the span: the eigenvectors of the Gram matrix (its columns scaled to unit length), the
-  // nearly dependent directions (a relative singular value below 1e-7: the samples' float rounding) dropped.
+  // nearly dependent directions (a relative singular value below 1e-7: the samples' rounding) dropped.
   const Eigen::MatrixXd gram = w.transpose() * w;
   Eigen::VectorXd scale(k);
   for (int j = 0; j < k; ++j) scale[j] = gram(j, j) > 0.0 ? 1.0 / std::sqrt(gram(j, j)) : 0.0;
@@ -278,13 +277,17 @@ int StepInSpan(SpringSystem::Columns w, SpringSystem* springs, const std::vector
 
 struct Sample {
   double alpha = 0.0;
-  Eigen::MatrixXf correction;  // anchor's frame
-  Eigen::MatrixXf tangent;     // its exact derivative in alpha, or empty
+  Eigen::MatrixXd correction;  // anchor's frame
+  Eigen::MatrixXd tangent;     // its exact derivative in alpha, or empty
   double energy = 0.0;         // infinite when a tentative solve failed
   bool converged = false;
   bool jumped = false;         // its solve went over a fold: far from a start extrapolated along the branch
   bool fold_before = false;    // (assembled path) the interval below it is a fold
+  bool two_words = false;      // stored in one word, it would start out of balance at its own alpha
 };
+
+PathField CorrectionField(const Sample& s) { return PathField(s.correction, s.two_words ? 2 : 1); }
+PathField TangentField(const Sample& s) { return s.tangent.size() > 0 ? PathField(s.tangent) : PathField(); }
 
 // The last samples of the branch a sweep follows, newest first: the polynomial through them, in the
 // corrections (which vary smoothly where the linear blend carries most of the motion), predicts the next.
@@ -292,14 +295,14 @@ class Continuation {
  public:
   static constexpr size_t kOrder = 2;  // at most quadratic
   void Reset() { past_.clear(); }
-  void Add(double alpha, const Points& correction, const Eigen::MatrixXf& tangent) {
-    // An empty tangent stays empty (0 x 3): Points has three columns, an empty MatrixXf none.
-    Points t = tangent.size() > 0 ? Points(tangent.cast<double>()) : Points(0, 3);
+  void Add(double alpha, const Points& correction, const Eigen::MatrixXd& tangent) {
+    // An empty tangent stays empty (0 x 3): Points has three columns, an empty MatrixXd none.
+    Points t = tangent.size() > 0 ? Points(tangent) : Points(0, 3);
     past_.push_front({alpha, correction, std::move(t)});
     if (past_.size() > kOrder + 1) past_.pop_back();
   }
   void Add(const Sample& sample) {
-    if (sample.converged) Add(sample.alpha, sample.correction.cast<double>(), sample.tangent);
+    if (sample.converged) Add(sample.alpha, sample.correction, sample.tangent);
   }
   // The predictions at alpha of orders 0 up to what the samples allow (none without samples). A sample
   // joins while the spacing stays within a factor 2 of the step, as the continuation's halvings keep it.
@@ -416,15 +419,15 @@ class PathSolver {
       const Eigen::MatrixXd zero = Eigen::MatrixXd::Zero(rig_.num_vertices(), 3);
       return Solve(alpha, nullptr, &zero);
     }
-    Sample sample{alpha, Eigen::MatrixXf::Zero(rig_.num_vertices(), 3), Eigen::MatrixXf(), 0.0, true};
+    Sample sample{alpha, Eigen::MatrixXd::Zero(rig_.num_vertices(), 3), Eigen::MatrixXd(), 0.0, true};
     sample.tangent = Tangent(alpha, std::move(x));
     return sample;
   }
 
   // The exact tangent at a sample given by its correction (anchor's frame).
-  Eigen::MatrixXf TangentOf(double alpha, const Eigen::MatrixXf& correction) {
+  Eigen::MatrixXd TangentOf(double alpha, const Eigen::MatrixXd& correction) {
     const Setup setup = SetUp(alpha);
-    Eigen::MatrixXd world = correction.cast<double>();
+    Eigen::MatrixXd world = correction;
     if (setup.conditions.motion) world = world * setup.conditions.motion->rotation.toRotationMatrix().transpose();
     const int n = rig_.num_vertices();
     Eigen::VectorXd x(3 * n);
@@ -441,7 +444,7 @@ class PathSolver {
   // correction's map (minus the linear blend, rotated into the anchor's frame, or aligned for a floating
   // rig) is then differentiated along (y', 1). Empty where the sample has no smooth tangent: at or next to an
   // in-between's weight (a kink), or where the Hessian is not positive definite (a fold, a saddle).
-  Eigen::MatrixXf Tangent(double alpha, Eigen::VectorXd x) {
+  Eigen::MatrixXd Tangent(double alpha, Eigen::VectorXd x) {
     if (stop_ != nullptr && *stop_ && (*stop_)()) ThrowCancelled();
     const double e = kTangentStep;
     for (const auto& knot : rig_.internals().controls.targets[target_]) {
@@ -524,7 +527,7 @@ class PathSolver {
     SetUp(alpha);
     const Points tangent = (ends[0] - ends[1]) / (2 * e);
     if (!tangent.allFinite()) return {};
-    return tangent.cast<float>();
+    return tangent;
   }
 
   int solves = 0;  // equilibria solved (tentative ones that failed not counted)
@@ -621,7 +624,7 @@ class PathSolver {
     const bool converged = summary.termination == MinimizerTermination::kConverged;
     newton_iterations += summary.iterations;
     if (!converged && tentative) {
-      return {alpha, Eigen::MatrixXf(), Eigen::MatrixXf(), std::numeric_limits<double>::infinity(), false};
+      return {alpha, Eigen::MatrixXd(), Eigen::MatrixXd(), std::numeric_limits<double>::infinity(), false};
     }
     ++solves;
     Points solved(n, 3);
@@ -634,8 +637,12 @@ class PathSolver {
     Points corrected = solved - linear;
     if (conditions.motion) corrected = corrected * conditions.motion->rotation.toRotationMatrix();  // R^T per row
     // A sample of the path (not a midpoint check) gets its exact tangent.
-    Eigen::MatrixXf tangent;
-    if (converged && finite && max_iterations == 0) tangent = Tangent(alpha, x);
+    Eigen::MatrixXd tangent;
+    bool two_words = false;
+    if (converged && finite && max_iterations == 0) {
+      tangent = Tangent(alpha, x);
+      two_words = NeedsTwoWords(alpha, corrected);
+    }
     if (continuation != nullptr) {
       // A solve whose correction (aligned, for a floating rig: its gauge says nothing) landed far from the one
       // extrapolated along the branch, by more than half of what the step changed, went over a fold to
@@ -649,9 +656,32 @@ class PathSolver {
       if (jumped) continuation->Reset();
       if (converged && finite) continuation->Add(alpha, corrected, tangent);
     }
-    return {alpha, corrected.cast<float>(), std::move(tangent),
-            converged && finite ? summary.energy : std::numeric_limits<double>::infinity(), converged && finite,
-            jumped};
+    return {alpha,
+            std::move(corrected),
+            std::move(tangent),
+            converged && finite ? summary.energy : std::numeric_limits<double>::infinity(),
+            converged && finite,
+            jumped,
+            false,
+            two_words};
+  }
+
+  // Whether a sample's correction (anchor's frame) needs two words (PathField): stored in one, the frame at
+  // its own alpha would start out of balance, its largest free force above the samples' tolerance and half
+  // again that of the correction itself.
+  bool NeedsTwoWords(double alpha, const Points& correction) {
+    const Setup setup = SetUp(alpha);
+    const auto force_at = [&](const Eigen::MatrixXd& c) {
+      Eigen::MatrixXd world = c;
+      if (setup.conditions.motion) world = world * setup.conditions.motion->rotation.toRotationMatrix().transpose();
+      Eigen::VectorXd x(3 * world.rows());
+      for (Eigen::Index v = 0; v < world.rows(); ++v) x.segment<3>(3 * v) = (setup.linear.row(v) + world.row(v)).transpose();
+      HoldConditions(rig_, setup.conditions, &x, &held_);
+      return springs_.Evaluate(x, held_, Curvature{}, false);
+    };
+    const double own = force_at(correction);
+    const double stored = force_at(PathField(correction).Decode());
+    return stored > std::max(sample_options_.residual_tolerance, 1.5 * own);
   }
 
  private:
@@ -667,8 +697,8 @@ class PathSolver {
 };
 
 // Largest distance of a vertex between two corrections.
-double Distance(const Eigen::MatrixXd& a, const Eigen::MatrixXf& b) {
-  return std::sqrt((a - b.cast<double>()).rowwise().squaredNorm().maxCoeff());
+double Distance(const Eigen::MatrixXd& a, const Eigen::MatrixXd& b) {
+  return std::sqrt((a - b).rowwise().squaredNorm().maxCoeff());
 }
 
 void BuildPath(const Rig& rig, int target, const TargetPathsOptions& options, TargetPath* path) {
@@ -715,7 +745,7 @@ void BuildPath(const Rig& rig, int target, const TargetPathsOptions& options, Ta
       for (size_t k = 1; k < up.size(); ++k) up[k].fold_before = up[k].jumped;
       Sample upper = j + 2 == knots.size() ? full : solver.End(b);
       if (up.back().converged &&
-          Distance(upper.correction.cast<double>(), up.back().correction) <= options.tolerance * diagonal) {
+          Distance(upper.correction, up.back().correction) <= options.tolerance * diagonal) {
         upper.fold_before = up.back().fold_before;
         up.pop_back();
         inside.insert(inside.end(), std::make_move_iterator(up.begin()), std::make_move_iterator(up.end()));
@@ -828,8 +858,8 @@ void BuildPath(const Rig& rig, int target, const TargetPathsOptions& options, Ta
   }
   for (int k : dense_of) {
     path->alphas.push_back(dense[k].alpha);
-    path->corrections.push_back(dense[k].correction);
-    path->tangents.push_back(dense[k].tangent);
+    path->corrections.push_back(CorrectionField(dense[k]));
+    path->tangents.push_back(TangentField(dense[k]));
     path->breaks.push_back(dense_break[k]);
   }
   for (size_t i = 0; i + 1 < dense_of.size(); ++i) {
@@ -931,6 +961,7 @@ void BuildPath(const Rig& rig, int target, const TargetPathsOptions& options, Ta
         for (size_t t = from; t < to; ++t) {
           Sample& sample = added[solved[t]];
           sample.tangent = on.TangentOf(sample.alpha, sample.correction);
+          sample.two_words = on.NeedsTwoWords(sample.alpha, sample.correction);
         }
       };
       const size_t half_solved = solved.size() / 2;
@@ -956,8 +987,8 @@ void BuildPath(const Rig& rig, int target, const TargetPathsOptions& options, Ta
       if (s < split.size() && split[s] == static_cast<int>(i)) {
         if (added_dense[s] < 0 && !added[s].converged) ++path->unconverged;
         next.alphas.push_back(added[s].alpha);
-        next.corrections.push_back(std::move(added[s].correction));
-        next.tangents.push_back(std::move(added[s].tangent));
+        next.corrections.push_back(CorrectionField(added[s]));
+        next.tangents.push_back(TangentField(added[s]));
         next.breaks.push_back(0);
         next_dense.push_back(added_dense[s]);
         for (int half_interval = 0; half_interval < 2; ++half_interval) {
@@ -1009,8 +1040,8 @@ int TargetPath::uncertified() const {
 
 std::int64_t TargetPath::bytes() const {
   std::int64_t total = static_cast<std::int64_t>(alphas.size() * (sizeof(double) + 2));
-  for (const Eigen::MatrixXf& c : corrections) total += static_cast<std::int64_t>(c.size() * sizeof(float));
-  for (const Eigen::MatrixXf& t : tangents) total += static_cast<std::int64_t>(t.size() * sizeof(float));
+  for (const PathField& c : corrections) total += c.bytes();
+  for (const PathField& t : tangents) total += t.empty() ? 0 : t.bytes();
   return total;
 }
 
@@ -1050,12 +1081,10 @@ void EvaluatePath(const TargetPath& path, double alpha, Eigen::MatrixXd* correct
   const Stencil stencil = StencilAt(path, alpha);
   *correction = Eigen::MatrixXd::Zero(path.corrections[0].rows(), 3);
   for (int i = 0; i < stencil.count; ++i) {
-    if (stencil.weight[i] != 0.0) *correction += stencil.weight[i] * path.corrections[stencil.sample[i]].cast<double>();
+    path.corrections[stencil.sample[i]].AddTo(stencil.weight[i], correction);
   }
   for (int i = 0; i < stencil.tangent_count; ++i) {
-    if (stencil.tangent_weight[i] != 0.0) {
-      *correction += stencil.tangent_weight[i] * path.tangents[stencil.tangent_sample[i]].cast<double>();
-    }
+    path.tangents[stencil.tangent_sample[i]].AddTo(stencil.tangent_weight[i], correction);
   }
 }
 
@@ -1069,12 +1098,10 @@ void AddPathCorrections(const std::vector<TargetPath>& paths, const std::vector<
     if (path.empty() || weights[t] == 0.0) continue;
     const Stencil stencil = StencilAt(path, weights[t]);
     for (int i = 0; i < stencil.count; ++i) {
-      if (stencil.weight[i] != 0.0) sum += stencil.weight[i] * path.corrections[stencil.sample[i]].cast<double>();
+      path.corrections[stencil.sample[i]].AddTo(stencil.weight[i], &sum);
     }
     for (int i = 0; i < stencil.tangent_count; ++i) {
-      if (stencil.tangent_weight[i] != 0.0) {
-        sum += stencil.tangent_weight[i] * path.tangents[stencil.tangent_sample[i]].cast<double>();
-      }
+      path.tangents[stencil.tangent_sample[i]].AddTo(stencil.tangent_weight[i], &sum);
     }
     any = true;
   }
@@ -1108,7 +1135,7 @@ int RefineInPathSpan(const std::vector<TargetPath>& paths, const std::vector<dou
                      const std::vector<char>& held, double diagonal_shift, Eigen::VectorXd* x) {
   if (!HasPathSpan(paths, weights)) return 0;
   const int moved = MovedTarget(weights);
-  const std::vector<const Eigen::MatrixXf*> columns = SpanAround(paths[moved], weights[moved]);
+  const std::vector<const PathField*> columns = SpanAround(paths[moved], weights[moved]);
   // The forces first (the Hessian blocks only once the step is taken).
   const double start_residual = springs->Evaluate(*x, held, Curvature{}, false);
   if (!(start_residual > residual_tolerance)) return 0;
@@ -1143,6 +1170,14 @@ class Cursor {
     return true;
   }
   size_t left() const { return in_.size() - at_; }
+  bool GetField(Eigen::Index rows, PathField* field) { return PathField::Parse(in_, &at_, rows, field); }
+  // A float field of the older versions, in fixed point.
+  bool GetFloatField(Eigen::Index rows, PathField* field) {
+    Eigen::MatrixXf f(rows, 3);
+    if (!GetBytes(f.data(), sizeof(float) * 3 * static_cast<size_t>(rows)) || !f.allFinite()) return false;
+    *field = PathField(f.cast<double>());
+    return true;
+  }
 
  private:
   const std::string& in_;
@@ -1171,15 +1206,13 @@ std::string SerializeTargetPaths(const std::vector<TargetPath>& paths) {
     for (double a : p.alphas) Put<double>(&out, a);
     out.append(reinterpret_cast<const char*>(p.breaks.data()), p.breaks.size());
     out.append(reinterpret_cast<const char*>(p.certified.data()), p.certified.size());
-    for (const Eigen::MatrixXf& c : p.corrections) {
-      out.append(reinterpret_cast<const char*>(c.data()), sizeof(float) * static_cast<size_t>(c.size()));
-    }
+    // Version 4: fixed point (PathField), in one or two words.
+    for (const PathField& c : p.corrections) c.AppendTo(&out);
     // Version 3: per sample, whether it has an exact tangent, then those tangents.
     for (int k = 0; k < p.samples(); ++k) out.push_back(HasTangent(p, k) ? 1 : 0);
     for (int k = 0; k < p.samples(); ++k) {
       if (!HasTangent(p, k)) continue;
-      const Eigen::MatrixXf& t = p.tangents[k];
-      out.append(reinterpret_cast<const char*>(t.data()), sizeof(float) * static_cast<size_t>(t.size()));
+      p.tangents[k].AppendTo(&out);
     }
   }
   return out;
@@ -1190,11 +1223,16 @@ std::optional<std::vector<TargetPath>> ParseTargetPaths(const std::string& bytes
   Cursor in(bytes);
   char magic[sizeof(kPathsMagic)];
   if (!in.GetBytes(magic, sizeof(magic)) || (std::memcmp(magic, kPathsMagic, sizeof(magic)) != 0 &&
+                                              std::memcmp(magic, kPathsMagicV3, sizeof(magic)) != 0 &&
                                               std::memcmp(magic, kPathsMagicV2, sizeof(magic)) != 0)) {
     *why = "not target paths of a known version";
     return std::nullopt;
   }
-  const bool with_tangents = std::memcmp(magic, kPathsMagic, sizeof(magic)) == 0;
+  const bool fixed_point = std::memcmp(magic, kPathsMagic, sizeof(magic)) == 0;
+  const bool with_tangents = fixed_point || std::memcmp(magic, kPathsMagicV3, sizeof(magic)) == 0;
+  const auto get_field = [&](Eigen::Index n, PathField* field) {
+    return fixed_point ? in.GetField(n, field) : in.GetFloatField(n, field);
+  };
   std::uint32_t count = 0, rows = 0;
   if (!in.Get(&count) || !in.Get(&rows)) {
     *why = "truncated";
@@ -1216,6 +1254,7 @@ std::optional<std::vector<TargetPath>> ParseTargetPaths(const std::string& bytes
       *why = fmt::format("paths of {} vertices for a rig of {}", rows, vertices);
       return std::nullopt;
     }
+    // At least (every version's field takes at least a float per coordinate).
     const size_t need = samples * (sizeof(double) + 2 + sizeof(float) * 3 * static_cast<size_t>(rows));
     if (samples < 2 || need > in.left()) {
       *why = "truncated";
@@ -1229,20 +1268,18 @@ std::optional<std::vector<TargetPath>> ParseTargetPaths(const std::string& bytes
     ok = ok && in.GetBytes(p.alphas.data(), sizeof(double) * samples) && in.GetBytes(p.breaks.data(), samples) &&
          in.GetBytes(p.certified.data(), samples - 1);
     for (std::uint32_t k = 0; ok && k < samples; ++k) {
-      Eigen::MatrixXf c(rows, 3);
-      ok = in.GetBytes(c.data(), sizeof(float) * 3 * static_cast<size_t>(rows)) && c.allFinite();
+      PathField c;
+      ok = get_field(rows, &c);
       p.corrections.push_back(std::move(c));
     }
-    p.tangents.assign(samples, Eigen::MatrixXf());
+    p.tangents.assign(samples, PathField());
     if (ok && with_tangents) {
       std::vector<std::uint8_t> has(samples);
       ok = in.GetBytes(has.data(), samples);
       for (std::uint32_t k = 0; ok && k < samples; ++k) {
         if (has[k] > 1) ok = false;
         if (!ok || has[k] == 0) continue;
-        Eigen::MatrixXf t(rows, 3);
-        ok = in.GetBytes(t.data(), sizeof(float) * 3 * static_cast<size_t>(rows)) && t.allFinite();
-        p.tangents[k] = std::move(t);
+        ok = get_field(rows, &p.tangents[k]);
       }
     }
     for (std::uint32_t k = 0; ok && k + 1 < samples; ++k) {

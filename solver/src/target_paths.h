@@ -30,6 +30,7 @@
 #include <vector>
 
 #include "anchor.h"
+#include "path_field.h"
 #include "spring_system.h"
 #include "springblend/rig.h"
 
@@ -37,12 +38,14 @@ namespace springblend::internal {
 
 struct TargetPath {
   std::vector<double> alphas;                 // ascending sample weights of the target; 0 and 1 among them
-  std::vector<Eigen::MatrixXf> corrections;   // per sample: #vertices by 3, in the anchor's frame
+  // Per sample: #vertices by 3, in the anchor's frame, in fixed point (two words where one would put the
+  // stored sample out of balance at its own weight).
+  std::vector<PathField> corrections;
   // Per sample: the exact derivative of its correction in alpha (#vertices by 3, anchor's frame), from one
   // linear solve with the sample's own Hessian; empty where there is none (an in-between's kink, a sample
   // that is not a minimum, a path loaded from an older cache file): the interpolant then takes a three-point
   // tangent there.
-  std::vector<Eigen::MatrixXf> tangents;
+  std::vector<PathField> tangents;
   std::vector<std::uint8_t> breaks;           // per sample: 1 at an in-between's weight (a kink: one-sided tangents)
   // Per interval (alphas.size() - 1): 1 where the check passed, 0 where it did not within the cap, 2 for the
   // interval that switches from the up branch to the down branch, 3 for a fold (the sweep jumped branches).

@@ -378,47 +378,100 @@ TEST(TargetPaths, SamplesCarryExactTangents) {
   }
 }
 
-// Paths saved by the previous version (bytes "SBPATH02": no tangents) still load: the interpolant then takes
-// three-point tangents, and frames converge to the same equilibria.
-TEST(TargetPaths, PathsOfThePreviousVersionStillLoad) {
+// Every stored sample starts the frame at its own weight in balance: its largest free force within the
+// samples' tolerance (1e-7) and half again their own, a sample that one word of fixed point would put out of
+// balance being kept in two (PathField). Frames at a sample's weight then take no Newton iteration.
+TEST(TargetPaths, EveryStoredSampleStartsItsFrameInBalance) {
+  const auto bump = Bump();
+  for (const Rig* rig : {SharedCylinder().get(), bump.get()}) {
+    const auto& paths = rig->internals().paths;
+    int checked = 0;
+    for (size_t t = 0; t < paths.size(); ++t) {
+      const internal::TargetPath& path = paths[t];
+      if (path.empty() || path.unconverged > 0) continue;
+      for (int k = 0; k < path.samples(); ++k) {
+        std::vector<double> weights(rig->num_targets(), 0.0);
+        weights[t] = path.alphas[k];
+        FrameStart start(*rig, weights);
+        const double force = start.springs.Evaluate(start.x, start.held, internal::Curvature{}, false);
+        EXPECT_LE(force, 1.5e-7) << "target " << t << ", sample " << k << " at alpha " << path.alphas[k] << " of "
+                                 << path.corrections[k].words() << " word(s)";
+        ++checked;
+      }
+    }
+    EXPECT_GT(checked, 40);
+  }
+  // A frame at a sample's weight (not a knot).
+  const auto& rig = SharedCylinder();
+  const internal::TargetPath& bend = rig->internals().paths[0];
+  const int k = bend.samples() / 3;
+  ASSERT_NE(bend.alphas[k], 0.0);
+  Solver solver(rig);
+  Points x;
+  const SolveSummary summary = solver.Solve(Frame{{bend.alphas[k], 0.0}}, &x);
+  ASSERT_TRUE(summary.converged()) << summary.message;
+  EXPECT_EQ(summary.newton_iterations, 0);
+  EXPECT_EQ(summary.solved_vertices, 0);
+}
+
+// Paths saved by earlier versions still load: "SBPATH03" (float corrections and tangents) and "SBPATH02"
+// (float corrections, no tangents: the interpolant then takes three-point tangents); frames converge to the
+// same equilibria.
+TEST(TargetPaths, PathsOfEarlierVersionsStillLoad) {
   const auto& rig = SharedCylinder();
   const std::string bytes = rig->SavePrecomputed();
   std::string why;
   const auto paths = internal::ParseTargetPaths(bytes, rig->num_targets(), rig->num_vertices(), &why);
   ASSERT_TRUE(paths.has_value()) << why;
-  // The version-2 layout: magic, path count, vertex count, then per path its samples, max error, solves, Newton
-  // iterations, unconverged samples, alphas, breaks, interval kinds and corrections.
-  std::string old("SBPATH02", 8);
-  const auto put = [&](const auto& value) { old.append(reinterpret_cast<const char*>(&value), sizeof(value)); };
-  put(static_cast<std::uint32_t>(paths->size()));
-  put(static_cast<std::uint32_t>(rig->num_vertices()));
-  int with_tangents = 0;
-  for (const internal::TargetPath& p : *paths) {
-    put(static_cast<std::uint32_t>(p.samples()));
-    if (p.empty()) continue;
-    put(p.max_error);
-    put(static_cast<std::int32_t>(p.solves));
-    put(static_cast<std::int32_t>(p.newton_iterations));
-    put(static_cast<std::int32_t>(p.unconverged));
-    for (double a : p.alphas) put(a);
-    old.append(reinterpret_cast<const char*>(p.breaks.data()), p.breaks.size());
-    old.append(reinterpret_cast<const char*>(p.certified.data()), p.certified.size());
-    for (const Eigen::MatrixXf& c : p.corrections) old.append(reinterpret_cast<const char*>(c.data()), 4 * c.size());
-    for (const Eigen::MatrixXf& t : p.tangents) with_tangents += t.size() > 0 ? 1 : 0;
-  }
-  EXPECT_GT(with_tangents, rig->summary().path_samples / 2);
-  RigBuildControl control;
-  control.precomputed = &old;
-  const auto loaded = Rig::Build(LoadMesh(DataPath("cylinder/cylinder.obj")), CylinderSpecs(), {}, control);
-  EXPECT_TRUE(loaded->summary().paths_loaded);
-  EXPECT_LT(loaded->summary().path_bytes, rig->summary().path_bytes);  // no tangents
-  Solver shipped(loaded), reference(rig, Tight());
-  for (double w : {0.3, 0.9}) {
-    Points x, y;
-    const SolveSummary summary = shipped.Solve(Frame{{w, 0.0}}, &x);
-    ASSERT_TRUE(summary.converged()) << summary.message;
-    ASSERT_TRUE(reference.Solve(Frame{{w, 0.0}}, &y).converged());
-    EXPECT_LE(MaxDistance(x, y) / rig->summary().bounding_box_diagonal, 1e-6) << "alpha " << w;
+  for (const bool v3 : {true, false}) {
+    // The layout: magic, path count, vertex count, then per path its samples, max error, solves, Newton
+    // iterations, unconverged samples, alphas, breaks, interval kinds and float corrections; version 3 then
+    // per sample whether it has a tangent, and those tangents as floats.
+    std::string old(v3 ? "SBPATH03" : "SBPATH02", 8);
+    const auto put = [&](const auto& value) { old.append(reinterpret_cast<const char*>(&value), sizeof(value)); };
+    const auto put_floats = [&](const internal::PathField& field) {
+      const Eigen::MatrixXf f = field.Decode().cast<float>();
+      old.append(reinterpret_cast<const char*>(f.data()), sizeof(float) * f.size());
+    };
+    put(static_cast<std::uint32_t>(paths->size()));
+    put(static_cast<std::uint32_t>(rig->num_vertices()));
+    int with_tangents = 0;
+    for (const internal::TargetPath& p : *paths) {
+      put(static_cast<std::uint32_t>(p.samples()));
+      if (p.empty()) continue;
+      put(p.max_error);
+      put(static_cast<std::int32_t>(p.solves));
+      put(static_cast<std::int32_t>(p.newton_iterations));
+      put(static_cast<std::int32_t>(p.unconverged));
+      for (double a : p.alphas) put(a);
+      old.append(reinterpret_cast<const char*>(p.breaks.data()), p.breaks.size());
+      old.append(reinterpret_cast<const char*>(p.certified.data()), p.certified.size());
+      for (const internal::PathField& c : p.corrections) put_floats(c);
+      for (const internal::PathField& t : p.tangents) with_tangents += t.empty() ? 0 : 1;
+      if (!v3) continue;
+      for (const internal::PathField& t : p.tangents) old.push_back(t.empty() ? 0 : 1);
+      for (const internal::PathField& t : p.tangents) {
+        if (!t.empty()) put_floats(t);
+      }
+    }
+    EXPECT_GT(with_tangents, rig->summary().path_samples / 2);
+    RigBuildControl control;
+    control.precomputed = &old;
+    const auto loaded = Rig::Build(LoadMesh(DataPath("cylinder/cylinder.obj")), CylinderSpecs(), {}, control);
+    EXPECT_TRUE(loaded->summary().paths_loaded) << (v3 ? "version 3" : "version 2");
+    if (v3) {
+      EXPECT_EQ(loaded->summary().path_samples, rig->summary().path_samples);
+    } else {
+      EXPECT_LT(loaded->summary().path_bytes, rig->summary().path_bytes);  // no tangents
+    }
+    Solver shipped(loaded), reference(rig, Tight());
+    for (double w : {0.3, 0.9}) {
+      Points x, y;
+      const SolveSummary summary = shipped.Solve(Frame{{w, 0.0}}, &x);
+      ASSERT_TRUE(summary.converged()) << summary.message;
+      ASSERT_TRUE(reference.Solve(Frame{{w, 0.0}}, &y).converged());
+      EXPECT_LE(MaxDistance(x, y) / rig->summary().bounding_box_diagonal, 1e-6) << "alpha " << w;
+    }
   }
 }
 
