@@ -7,11 +7,11 @@
 // for a sample that one word would put out of balance.
 //
 // Why not floats: rounding is noise from vertex to vertex, and the forces are the springs' strains, so a
-// rounding error counts as itself over an edge's length, however small against the field. The horse's
-// jawless path (bench/paths_bench.cc): stored as floats, a frame exactly at a sample's weight started out of
-// balance at too many vertices for the local finish, and 5 of 17 frames finished locally (205 ms median);
-// with 32-bit fixed point, as with doubles, 12 of 17 (6.2 ms median, doubles 6.5 ms), at the floats' size.
-// 24-bit fixed point: 1 of 17; 28-bit: 12 of 17.
+// rounding error counts as itself over an edge's length, however small against the field. On the horse's path
+// (bench/paths_bench.cc, one run each): stored as floats, 5 of 17 frames finished locally (141 ms median),
+// and a frame exactly at a sample's weight started out of balance at too many vertices; in 32-bit fixed
+// point 12 of 17 (7.0 ms median), as with doubles at twice the size (12 of 17, 6.5 ms); 28-bit fixed point
+// 12 of 17, 24-bit 1 of 17.
 #pragma once
 
 #include <Eigen/Core>
