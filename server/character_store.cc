@@ -261,10 +261,19 @@ std::string SerializeWithName(const CharacterData& d, const std::string& name) {
       for (const auto& driver : t.combination) w.PutString(driver);
     }
   }
-  if (!o.target_paths || o.hold_outer_rim) {
+  // The options tail, written only where an option differs from the default (a character without any keeps
+  // the bytes, and so the id, it always had): whether it has paths, then whether its rim is held, then the
+  // paths' density.
+  const RigOptions defaults;
+  const bool density = o.path_intervals != defaults.path_intervals || o.path_max_samples != defaults.path_max_samples;
+  if (!o.target_paths || o.hold_outer_rim || density) {
     w.PutBytes(kOptionsMarker, sizeof(kOptionsMarker));
     w.Put<std::uint8_t>(o.target_paths ? 1 : 0);
-    if (o.hold_outer_rim) w.Put<std::uint8_t>(1);
+    if (o.hold_outer_rim || density) w.Put<std::uint8_t>(o.hold_outer_rim ? 1 : 0);
+    if (density) {
+      w.Put<std::uint32_t>(static_cast<std::uint32_t>(o.path_intervals));
+      w.Put<std::uint32_t>(static_cast<std::uint32_t>(o.path_max_samples));
+    }
   }
   return w.Take();
 }
@@ -361,6 +370,11 @@ CharacterData Deserialize(const std::string& bytes) {
   if (std::memcmp(marker, kOptionsMarker, sizeof(marker)) == 0) {
     d.options.target_paths = r.Get<std::uint8_t>() != 0;
     if (!r.Done()) d.options.hold_outer_rim = r.Get<std::uint8_t>() != 0;
+    if (!r.Done()) {
+      d.options.path_intervals = static_cast<int>(r.Get<std::uint32_t>());
+      d.options.path_max_samples = static_cast<int>(r.Get<std::uint32_t>());
+      d.options.Validate();  // a file's options are checked as an upload's (Error kInvalidInput names them)
+    }
   } else if (marker[0] != 0) {
     throw Error(ErrorCode::kInvalidInput, "character data has trailing bytes");
   }

@@ -26,6 +26,10 @@ Eigen::Vector3d ToVector(const v1::Vec3& v) { return {v.x(), v.y(), v.z()}; }
 // Coordinates, radii and extents are bounded well inside float32; non-finite ones are left to the solver's
 // checks (which name them in their own words).
 constexpr double kMaxCoordinate = 1e12;
+// The target paths' density an upload may ask for (BuildOptions): a path's memory grows with its samples and
+// its build with its steps, so the wire's bounds are tighter than RigOptions'.
+constexpr std::uint32_t kMinPathIntervals = 4, kMaxPathIntervals = 128;
+constexpr std::uint32_t kMinPathMaxSamples = 8, kMaxPathMaxSamples = 256;
 
 void CheckMagnitude(double value, const std::function<std::string()>& field) {
   if (!std::isfinite(value)) return;
@@ -255,6 +259,14 @@ void UploadAssembler::Add(v1::UploadChunk& chunk) {
     data_.options.target_paths = !o.no_target_paths();
     data_.options.hold_outer_rim = o.hold_outer_rim();
     if (o.bending_stiffness() != 0.0) data_.options.bending_stiffness = o.bending_stiffness();
+    const auto density = [&](std::uint32_t value, std::uint32_t low, std::uint32_t high, const char* field, int* out) {
+      if (value == 0) return;
+      if (value < low || value > high) Fail(fmt::format("options.{} = {} is outside [{}, {}]", field, value, low, high));
+      *out = static_cast<int>(value);
+    };
+    density(o.path_intervals(), kMinPathIntervals, kMaxPathIntervals, "path_intervals", &data_.options.path_intervals);
+    density(o.path_max_samples(), kMinPathMaxSamples, kMaxPathMaxSamples, "path_max_samples",
+            &data_.options.path_max_samples);
     data_.options.Validate();
     vertex_count_ = h.vertex_count();
     face_count_ = h.face_count();

@@ -33,6 +33,7 @@ struct RemoteArgs {
   std::vector<int> fixed;
   bool no_interior = false, no_anchor = false, no_target_paths = false, hold_outer_rim = false;
   double static_tolerance = 0.0, bending_stiffness = 0.0;  // 0: the server's defaults
+  std::uint32_t path_intervals = 0, path_max_samples = 0;   // 0: the server's defaults
   // solve
   std::string character, out, frames_file;
   std::vector<std::string> weights;  // numbers, or NAME=NUMBER
@@ -161,6 +162,8 @@ int RunUpload(const RemoteArgs& args) {
   options.set_hold_outer_rim(args.hold_outer_rim);
   options.set_static_tolerance(args.static_tolerance);
   options.set_bending_stiffness(args.bending_stiffness);
+  options.set_path_intervals(args.path_intervals);
+  options.set_path_max_samples(args.path_max_samples);
   v1::Character c;
   if (!args.rig.empty()) {
     if (!args.rest.empty() || !args.targets.empty()) {
@@ -390,6 +393,12 @@ std::vector<std::pair<std::string, Runner>> AddServiceCommands(CLI::App& app) {
       ->check(CLI::PositiveNumber);
   upload->add_flag("--no-target-paths", args->no_target_paths,
                    "build no target paths: a faster upload, slower frames (still stateless)");
+  upload->add_option("--path-intervals", args->path_intervals,
+                     "target paths' continuation steps per unit of weight (default 32; denser paths finish more "
+                     "frames locally where a character's paths snap often, at more memory and upload time)")
+      ->check(CLI::Range(4, 128));
+  upload->add_option("--path-max-samples", args->path_max_samples, "samples kept per target path (default 64)")
+      ->check(CLI::Range(8, 256));
   runners.emplace_back("upload", Guarded("upload", args, RunUpload));
 
   CLI::App* solve = app.add_subcommand(

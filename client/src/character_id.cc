@@ -20,6 +20,8 @@ constexpr char kRigMarker[8] = {'S', 'B', 'R', 'I', 'G', '0', '0', '1'};
 constexpr char kOptionsMarker[8] = {'S', 'B', 'O', 'P', 'T', '0', '0', '1'};
 // RigOptions' defaults, which a zero BuildOptions field means.
 constexpr double kDefaultStaticTolerance = 1e-6;
+constexpr std::uint32_t kDefaultPathIntervals = 32;   // RigOptions::path_intervals
+constexpr std::uint32_t kDefaultPathMaxSamples = 64;  // RigOptions::path_max_samples
 constexpr double kDefaultBendingStiffness = 1.0;
 
 class CanonicalBytes {
@@ -92,10 +94,18 @@ std::string CharacterId(const TriangleMesh& rest, const std::vector<RigTarget>& 
       for (const std::string& driver : t.combination) w.PutString(driver);
     }
   }
-  if (options.no_target_paths() || options.hold_outer_rim()) {
+  // The server's options tail (character_store.cc): only where an option differs from the default.
+  const std::uint32_t intervals = options.path_intervals() != 0 ? options.path_intervals() : kDefaultPathIntervals;
+  const std::uint32_t samples = options.path_max_samples() != 0 ? options.path_max_samples() : kDefaultPathMaxSamples;
+  const bool density = intervals != kDefaultPathIntervals || samples != kDefaultPathMaxSamples;
+  if (options.no_target_paths() || options.hold_outer_rim() || density) {
     w.PutBytes(kOptionsMarker, sizeof(kOptionsMarker));
     w.Put<std::uint8_t>(options.no_target_paths() ? 0 : 1);
-    if (options.hold_outer_rim()) w.Put<std::uint8_t>(1);
+    if (options.hold_outer_rim() || density) w.Put<std::uint8_t>(options.hold_outer_rim() ? 1 : 0);
+    if (density) {
+      w.Put<std::uint32_t>(intervals);
+      w.Put<std::uint32_t>(samples);
+    }
   }
   return w.HexSha256();
 }

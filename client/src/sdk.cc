@@ -206,6 +206,12 @@ Character Client::Upload(const Mesh& rest, const std::vector<Target>& targets, c
   o.set_no_anchor(options.no_anchor);
   o.set_no_target_paths(options.no_target_paths);
   o.set_hold_outer_rim(options.hold_outer_rim);
+  if (options.path_intervals < 0) throw Invalid(fmt::format("path_intervals = {} is negative", options.path_intervals));
+  if (options.path_max_samples < 0) {
+    throw Invalid(fmt::format("path_max_samples = {} is negative", options.path_max_samples));
+  }
+  o.set_path_intervals(static_cast<std::uint32_t>(options.path_intervals));
+  o.set_path_max_samples(static_cast<std::uint32_t>(options.path_max_samples));
   springblend::Client::UploadProgress progress;
   if (on_progress) {
     progress = [&](const std::string& id, const v1::BuildProgress& p) {

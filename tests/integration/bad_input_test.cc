@@ -259,6 +259,10 @@ class BadInputTest : public ::testing::Test {
            kInvalid, "options.fixed_vertices");
     upload("a NaN bending stiffness", [](Upload& u) { u.header.mutable_options()->set_bending_stiffness(kNaN); },
            kInvalid, "bending");
+    upload("100000 path steps per unit", [](Upload& u) { u.header.mutable_options()->set_path_intervals(100000); },
+           kInvalid, "options.path_intervals = 100000 is outside [4, 128]");
+    upload("2 path samples", [](Upload& u) { u.header.mutable_options()->set_path_max_samples(2); }, kInvalid,
+           "options.path_max_samples = 2 is outside [8, 256]");
     // The meshes themselves.
     upload("a NaN rest coordinate", [](Upload& u) { u.shapes[0][4] = kNaN; }, kInvalid,
            "rest mesh: vertex 1 has a non-finite y coordinate");

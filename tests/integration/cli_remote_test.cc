@@ -245,6 +245,9 @@ TEST_F(CliRemoteTest, AHeldRimUploadTakesCollidersAndNamedWeightsIntoAShotsPoint
   EXPECT_EQ(refused.exit_code, 2);
   EXPECT_THAT(refused.stderr_text, HasSubstr("--hold-outer-rim"));
 
+  const CliRun too_coarse = RunCli("upload" + meshes + " --path-intervals 3" + remote, dir_);
+  EXPECT_EQ(too_coarse.exit_code, 2);
+  EXPECT_THAT(too_coarse.stderr_text, HasSubstr("--path-intervals"));
   const CliRun held =
       RunCli("upload" + meshes + " --hold-outer-rim --static-tolerance 1e-5 --bending-stiffness 0.8" + remote, dir_);
   ASSERT_EQ(held.exit_code, 0) << held.stderr_text;

@@ -371,6 +371,9 @@ TEST(ServerRouting, ClientsComputeTheIdTheServerGivesAndAMismatchIsCounted) {
   rim_fast.set_hold_outer_rim(true);
   v1::BuildOptions rim;
   rim.set_hold_outer_rim(true);
+  v1::BuildOptions dense;  // coarser than the default, to stay quick: any density other than the default
+  dense.set_path_intervals(16);
+  dense.set_path_max_samples(40);
   std::vector<RigTarget> production = plain;
   RigTarget::Inbetween half;
   half.weight = 0.4;
@@ -390,6 +393,7 @@ TEST(ServerRouting, ClientsComputeTheIdTheServerGivesAndAMismatchIsCounted) {
                {"every build option", plain, chosen},
                {"held outer rim, no target paths", plain, rim_fast},
                {"held outer rim, with target paths", plain, rim},
+               {"target paths of another density", plain, dense},
                {"in-between, mask and combination", production, fast}};
   std::set<std::string> ids;
   for (const auto& c : cases) {
@@ -398,7 +402,7 @@ TEST(ServerRouting, ClientsComputeTheIdTheServerGivesAndAMismatchIsCounted) {
     EXPECT_EQ(computed, uploaded.id()) << c.what;
     ids.insert(uploaded.id());
   }
-  EXPECT_EQ(ids.size(), 6u) << "each case is another character";
+  EXPECT_EQ(ids.size(), 7u) << "each case is another character";
   EXPECT_EQ(SeriesValue(HttpGet(server.metrics_port(), "/metrics"), "springblend_upload_routing_mismatches_total"), 0);
 
   // A client that routes by something else than the id: served, and counted.

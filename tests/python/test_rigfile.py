@@ -201,8 +201,11 @@ class RigUploadTest(unittest.TestCase):
                                      no_target_paths=True).id)
             ids.append(client.upload(rig.rest, rig.faces, targets, no_target_paths=True).id)
             ids.append(client.upload(rig.rest, rig.faces, targets, no_target_paths=True, hold_outer_rim=True).id)
+            dense = client.upload(rig.rest, rig.faces, targets, path_intervals=16, path_max_samples=40)
+            ids.append(dense.id)
         self.assertEqual(recorder.routes, ids)
-        self.assertEqual(len(set(ids)), 5)
+        self.assertEqual(len(set(ids)), 6)
+        self.assertLessEqual(dense.summary.path_samples, 2 * 40)  # two targets, at most 40 samples each
 
     def test_server_refusals_name_the_rig_file(self):
         rig = rigfile.load_rig(RIG)

@@ -55,6 +55,25 @@ TEST(StoreFile, TheIdAndTheCacheFileKeepBuildOptionsThatChangeFrames) {
   }
   EXPECT_FALSE(Deserialize(Serialize(without)).options.hold_outer_rim);
   EXPECT_EQ(Serialize(with).find("SBOPT001"), std::string::npos);
+  // The paths' density, with and without the held rim: another id, kept by the cache file.
+  CharacterData dense = Tetrahedron(1.0), dense_rim = rim;
+  dense.options.path_intervals = dense_rim.options.path_intervals = 64;
+  dense.options.path_max_samples = dense_rim.options.path_max_samples = 128;
+  EXPECT_EQ(std::set<std::string>({ContentId(with), ContentId(rim), ContentId(dense), ContentId(dense_rim)}).size(), 4u);
+  for (const CharacterData* d : {&dense, &dense_rim}) {
+    const CharacterData back = Deserialize(Serialize(*d));
+    EXPECT_EQ(back.options.path_intervals, 64);
+    EXPECT_EQ(back.options.path_max_samples, 128);
+    EXPECT_EQ(back.options.hold_outer_rim, d->options.hold_outer_rim);
+    EXPECT_TRUE(back.options.target_paths);
+    EXPECT_EQ(Serialize(back), Serialize(*d));
+  }
+  // A file whose density is out of range is refused, naming the option.
+  CharacterData wild = dense;
+  wild.options.path_intervals = 100000;
+  const Error refused = testing::CatchError([&] { Deserialize(Serialize(wild)); });
+  EXPECT_EQ(refused.code(), ErrorCode::kInvalidInput);
+  EXPECT_NE(std::string(refused.what()).find("path_intervals"), std::string::npos) << refused.what();
   testing::TempDir dir;
   std::string id;
   {

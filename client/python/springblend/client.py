@@ -120,7 +120,7 @@ class Client:
 
     def upload(self, rest, faces, targets, target_names=None, name="", fixed_vertices=(), static_tolerance=0.0,
                no_interior=False, no_anchor=False, bending_stiffness=0.0, no_target_paths=False, hold_outer_rim=False,
-               on_progress=None):
+               path_intervals=0, path_max_samples=0, on_progress=None):
         """Uploads a character and returns its Character message (id, cache_hit, summary, target_names).
 
         Args:
@@ -130,9 +130,12 @@ class Client:
             target_names: one unique name per target when targets is a list.
             name: a label for people (not part of the id).
             fixed_vertices, static_tolerance, no_interior, no_anchor, bending_stiffness, no_target_paths,
-                hold_outer_rim: the rig builder's BuildOptions (zero values mean the server's defaults).
-                hold_outer_rim holds an open surface's outer rim (a face mask's) on the linear blend, so a rig
-                whose targets move every vertex is held and takes colliders and pins.
+                hold_outer_rim, path_intervals, path_max_samples: the rig builder's BuildOptions (zero values
+                mean the server's defaults). hold_outer_rim holds an open surface's outer rim (a face mask's) on
+                the linear blend, so a rig whose targets move every vertex is held and takes colliders and pins.
+                path_intervals (steps per unit of weight, [4, 128], default 32) and path_max_samples (per
+                target, [8, 256], default 64) make the target paths denser: more single-target frames finish
+                locally where a character's paths snap often, at more memory and upload time.
             on_progress: None, or a function called as on_progress(character_id, progress) about twice a second
                 while the server builds the character, progress being a BuildProgress message (stage, targets,
                 targets_done, path_samples, elapsed_ms, estimate_ms, from_cache_file). It runs on the calling
@@ -157,7 +160,8 @@ class Client:
         options = pb.BuildOptions(fixed_vertices=[int(v) for v in fixed_vertices],
                                   static_tolerance=float(static_tolerance), no_interior=bool(no_interior),
                                   no_anchor=bool(no_anchor), bending_stiffness=float(bending_stiffness),
-                                  no_target_paths=bool(no_target_paths), hold_outer_rim=bool(hold_outer_rim))
+                                  no_target_paths=bool(no_target_paths), hold_outer_rim=bool(hold_outer_rim),
+                                  path_intervals=int(path_intervals), path_max_samples=int(path_max_samples))
         header = pb.UploadHeader(name=name, vertex_count=len(rest), face_count=len(faces),
                                  target_names=[str(n) for n in target_names], options=options)
         return self._upload(header, faces, shapes_, {}, on_progress)
@@ -167,7 +171,7 @@ class Client:
         in-betweens, masks and combinations. Solves then take one weight per target that is not a combination
         (rig.weight_names). The server's refusals ("target 'jawOpen': inbetweens[1].weight ...") get the rig
         file's path in front. options: static_tolerance, no_interior, no_anchor, bending_stiffness,
-        no_target_paths, hold_outer_rim, and on_progress, as for upload."""
+        no_target_paths, hold_outer_rim, path_intervals, path_max_samples, and on_progress, as for upload."""
         if isinstance(rig, (str, bytes)) or hasattr(rig, "__fspath__"):
             rig = rigfile.load_rig(rig)
         rest = arrays.as_points(rig.rest, "rest")

@@ -17,6 +17,8 @@ _OPTIONS_MARKER = b"SBOPT001"
 # RigOptions' defaults, which a zero BuildOptions field means.
 _DEFAULT_STATIC_TOLERANCE = 1e-6
 _DEFAULT_BENDING_STIFFNESS = 1.0
+_DEFAULT_PATH_INTERVALS = 32
+_DEFAULT_PATH_MAX_SAMPLES = 64
 
 
 def _string(text):
@@ -59,8 +61,14 @@ def character_id(header, faces, shapes, masks):
             digest.update(struct.pack("<I", len(spec.combination)))
             for driver in spec.combination:
                 digest.update(_string(driver))
-    if options.no_target_paths or options.hold_outer_rim:
+    # The options tail, only where an option differs from the default.
+    intervals = options.path_intervals or _DEFAULT_PATH_INTERVALS
+    samples = options.path_max_samples or _DEFAULT_PATH_MAX_SAMPLES
+    density = intervals != _DEFAULT_PATH_INTERVALS or samples != _DEFAULT_PATH_MAX_SAMPLES
+    if options.no_target_paths or options.hold_outer_rim or density:
         digest.update(_OPTIONS_MARKER + (b"\0" if options.no_target_paths else b"\1"))
-        if options.hold_outer_rim:
-            digest.update(b"\1")
+        if options.hold_outer_rim or density:
+            digest.update(b"\1" if options.hold_outer_rim else b"\0")
+        if density:
+            digest.update(struct.pack("<II", intervals, samples))
     return digest.hexdigest()
