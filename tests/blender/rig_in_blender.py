@@ -107,8 +107,12 @@ def main():
     group.add([3], 0.25, "REPLACE")  # below 0.5: not held
     obj.springblend_hold_outer_rim = True
     check(bpy.ops.springblend.upload() == {"FINISHED"}, "upload with held vertices failed")
-    pathlib.Path(config["result"]).write_text(json.dumps({"character": character,
-                                                          "held_character": obj.springblend_character}))
+    held_character = obj.springblend_character
+    # The paths' density too.
+    obj.springblend_path_intervals = 16
+    check(bpy.ops.springblend.upload() == {"FINISHED"}, "upload with denser paths failed")
+    pathlib.Path(config["result"]).write_text(json.dumps({"character": character, "held_character": held_character,
+                                                          "dense_character": obj.springblend_character}))
     import_baked(config)
     print("rig_in_blender: exported, uploaded and baked", len(config["frames"]), "frames; imported the baked rig")
 

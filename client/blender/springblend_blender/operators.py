@@ -84,6 +84,8 @@ class SPRINGBLEND_OT_upload(jobs.ModalJob, _Guarded, bpy.types.Operator):
         client = connection.connect(context.scene)
         name = self._object_name = obj.name
         hold_outer_rim = bool(obj.springblend_hold_outer_rim)
+        density = {"path_intervals": int(obj.springblend_path_intervals),
+                   "path_max_samples": int(obj.springblend_path_max_samples)}
         self._counts = (len(rig.rest), len(rig.targets))
 
         def work(job):
@@ -95,7 +97,8 @@ class SPRINGBLEND_OT_upload(jobs.ModalJob, _Guarded, bpy.types.Operator):
 
             job.progress(0.0, f"uploading '{name}'")
             with client:
-                return client.upload_rig(rig, name=name, on_progress=progress, hold_outer_rim=hold_outer_rim)
+                return client.upload_rig(rig, name=name, on_progress=progress, hold_outer_rim=hold_outer_rim,
+                                         **density)
 
         return jobs.Job(work, "upload")
 

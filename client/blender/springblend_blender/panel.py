@@ -35,6 +35,9 @@ class SPRINGBLEND_PT_main(bpy.types.Panel):
             row.operator("springblend.export_rig", text="", icon="FILE_TICK")
             row.operator("springblend.import_rig", text="", icon="IMPORT")
             box.prop(obj, "springblend_hold_outer_rim")
+            density = box.row(align=True)
+            density.prop(obj, "springblend_path_intervals")
+            density.prop(obj, "springblend_path_max_samples")
 
         layout.prop(settings, "colliders")
         if obj is not None and obj.type in {"EMPTY", "MESH"}:

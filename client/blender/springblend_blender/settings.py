@@ -98,6 +98,14 @@ def register_properties():
         description="Hold the mesh's outer rim (a face mask's; its holes stay free) on the linear blend, as a mask "
                     "is stitched to its head: the character is then held whatever its shape keys move, so "
                     "colliders work. Vertices of a vertex group named 'springblend_fixed' are held too")
+    bpy.types.Object.springblend_path_intervals = bpy.props.IntProperty(
+        name="Path Steps", default=0, min=0, max=128,
+        description="Target paths' continuation steps per unit of weight (0: the server's default, 32; else 4 to "
+                    "128). A character whose paths snap often finishes more single-target frames locally from "
+                    "denser paths, at more memory and a longer upload")
+    bpy.types.Object.springblend_path_max_samples = bpy.props.IntProperty(
+        name="Path Samples", default=0, min=0, max=256,
+        description="Samples kept per target path (0: the server's default, 64; else 8 to 256)")
     bpy.types.Object.springblend_collider = bpy.props.EnumProperty(
         name="springblend shape", items=COLLIDER_SHAPES, default="AUTO",
         description="How this object is sent as a springblend collider")
@@ -105,6 +113,8 @@ def register_properties():
 
 def unregister_properties():
     del bpy.types.Object.springblend_collider
+    del bpy.types.Object.springblend_path_max_samples
+    del bpy.types.Object.springblend_path_intervals
     del bpy.types.Object.springblend_hold_outer_rim
     del bpy.types.Object.springblend_character
     del bpy.types.Scene.springblend
