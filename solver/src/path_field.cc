@@ -31,6 +31,7 @@ PathField::PathField(const Eigen::MatrixXd& values, int words) {
 }
 
 std::int64_t PathField::bytes() const {
+  if (empty()) return 0;
   return static_cast<std::int64_t>(sizeof(std::int32_t) * (high_.size() + low_.size()) + sizeof(double));
 }
 

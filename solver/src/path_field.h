@@ -32,7 +32,7 @@ class PathField {
   Eigen::Index rows() const { return high_.rows(); }
   int words() const { return empty() ? 0 : low_.size() > 0 ? 2 : 1; }
   double step() const { return step_; }  // value of the first word's unit
-  std::int64_t bytes() const;
+  std::int64_t bytes() const;  // 0 when empty
 
   // out += weight * field (out #vertices by 3).
   void AddTo(double weight, Eigen::MatrixXd* out) const;

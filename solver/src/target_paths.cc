@@ -1041,7 +1041,7 @@ int TargetPath::uncertified() const {
 std::int64_t TargetPath::bytes() const {
   std::int64_t total = static_cast<std::int64_t>(alphas.size() * (sizeof(double) + 2));
   for (const PathField& c : corrections) total += c.bytes();
-  for (const PathField& t : tangents) total += t.empty() ? 0 : t.bytes();
+  for (const PathField& t : tangents) total += t.bytes();
   return total;
 }
 
