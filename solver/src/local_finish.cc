@@ -6,6 +6,7 @@
 #include <cmath>
 
 #include "line_search.h"
+#include "sparse_cholesky.h"
 
 namespace springblend::internal {
 
@@ -187,15 +188,23 @@ class RegionNewton {
   bool Direction(const Eigen::VectorXd& x, const Eigen::VectorXd& force, Eigen::VectorXd* step) {
     for (int attempt = 0; attempt < 3; ++attempt) {
       Assemble(x, attempt == 0 ? 1.0 : 0.0, attempt == 2 ? 1e-8 * MeanDiagonal() : 0.0);
-      if (!analysed_) {
-        llt_.analyzePattern(matrix_);
+      // The lower triangle in compressed columns is the upper one in compressed rows: the backend's layout.
+      upper_ = matrix_;
+      upper_.makeCompressed();
+      if (!analysed_ || upper_.nonZeros() != static_cast<Eigen::Index>(pattern_.row_indices.size())) {
+        pattern_.n = static_cast<int>(upper_.rows());
+        pattern_.column_starts.assign(upper_.outerIndexPtr(), upper_.outerIndexPtr() + upper_.rows() + 1);
+        pattern_.row_indices.assign(upper_.innerIndexPtr(), upper_.innerIndexPtr() + upper_.nonZeros());
+        cholesky_ = SparseCholesky::Create(options_.linear_solver);
+        cholesky_->Analyze(pattern_);
         analysed_ = true;
       }
-      llt_.factorize(matrix_);
+      const FactorStatus status = cholesky_->Factorize(upper_.valuePtr());
       ++result_.factorizations;
       if (attempt > 0) ++result_.projected_factorizations;
-      if (llt_.info() == Eigen::Success) {
-        *step = llt_.solve(force);
+      if (status == FactorStatus::kOk) {
+        step->resize(force.size());
+        cholesky_->Solve(force.data(), step->data());
         if (step->allFinite()) return true;
       }
     }
@@ -221,7 +230,9 @@ class RegionNewton {
   std::vector<int> springs_in_;   // springs with an endpoint in the region
   std::vector<Eigen::Triplet<double>> triplets_;
   Eigen::SparseMatrix<double> matrix_;
-  Eigen::SimplicialLLT<Eigen::SparseMatrix<double>, Eigen::Lower, Eigen::AMDOrdering<int>> llt_;
+  Eigen::SparseMatrix<double, Eigen::RowMajor> upper_;
+  SymmetricPattern pattern_;  // the region's, analysed by cholesky_ (which keeps a pointer to it)
+  std::unique_ptr<SparseCholesky> cholesky_;
   bool analysed_ = false;
 };
 

@@ -15,6 +15,7 @@
 #include "springblend/rig.h"
 #include "springblend/solve.h"
 #include "frame_conditions.h"
+#include "local_finish.h"
 #include "rig_internals.h"
 #include "spring_system.h"
 #include "target_paths.h"
@@ -232,6 +233,43 @@ double Distance(const Eigen::VectorXd& x, const Points& to) {
   double largest = 0.0;
   for (Eigen::Index v = 0; v < to.rows(); ++v) largest = std::max(largest, (x.segment<3>(3 * v) - to.row(v).transpose()).norm());
   return largest;
+}
+
+// The region's Hessian is factored by the rig's backend (CHOLMOD's supernodal factorization by default): it
+// finishes the same frames, from the same starts, at the same equilibrium as Eigen's simplicial Cholesky.
+TEST(TargetPaths, ALocalFinishGivesTheSameEquilibriumWithEitherBackend) {
+  const auto rig = Bump();
+  const double diagonal = rig->summary().bounding_box_diagonal;
+  int partial = 0;
+  for (double a : {0.13, 0.37, 0.61, 0.83, 1.17}) {
+    Eigen::VectorXd answers[2];
+    internal::LocalFinishResult results[2];
+    const LinearSolverType backends[2] = {LinearSolverType::kCholmodSupernodal, LinearSolverType::kEigenSimplicial};
+    for (int b = 0; b < 2; ++b) {
+      FrameStart start(*rig, {a});
+      internal::LocalFinishOptions options;
+      // Tighter than the path's samples, so that most frames have a region to solve.
+      options.residual_tolerance = 1e-8;
+      options.step_tolerance = 1e-10;
+      options.linear_solver = backends[b];
+      results[b] = internal::LocalFinish(&start.springs, start.held, start.conditions.diagonal_shift, diagonal,
+                                         rig->summary().mean_rest_length, options, nullptr, &start.x);
+      ASSERT_TRUE(results[b].converged) << "alpha " << a << " backend " << b << ": " << results[b].why;
+      answers[b] = start.x;
+    }
+    EXPECT_EQ(results[0].vertices, results[1].vertices) << "alpha " << a;
+    EXPECT_EQ(results[0].rounds, results[1].rounds) << "alpha " << a;
+    EXPECT_LE(results[0].residual, 1e-8);
+    std::cout << "alpha " << a << ": " << results[0].vertices << " of " << results[0].free_vertices
+              << " vertices solved in " << results[0].rounds << " rounds\n";
+    double largest = 0.0;
+    for (Eigen::Index v = 0; v < answers[0].size() / 3; ++v) {
+      largest = std::max(largest, (answers[0].segment<3>(3 * v) - answers[1].segment<3>(3 * v)).norm());
+    }
+    EXPECT_LE(largest / diagonal, 1e-8) << "alpha " << a;
+    if (results[0].vertices > 0 && results[0].vertices < results[0].free_vertices) ++partial;
+  }
+  EXPECT_GE(partial, 2);  // the frames did need a region solved
 }
 
 // The span step on a coarser path (16 steps per unit: its interpolant starts frames out of balance): it lowers
