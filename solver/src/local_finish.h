@@ -28,8 +28,9 @@ struct LocalFinishOptions {
   // Gives up at once, x untouched, when more than this share of the free vertices starts out of balance (for
   // a caller with a cheaper remedy for such a start: the path span step).
   double max_seed_share = 1.0;
-  // The backend that factors the region's Hessian (the rig's: CHOLMOD's supernodal factorization is several
-  // times faster than a simplicial one on regions of a few thousand vertices).
+  // The backend that factors the region's Hessian for its direct solves (a double-precision one: CHOLMOD's
+  // supernodal factorization is several times faster than a simplicial one on regions of a few thousand
+  // vertices).
   LinearSolverType linear_solver = LinearSolverType::kCholmodSupernodal;
 };
 
