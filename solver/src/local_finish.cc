@@ -188,18 +188,15 @@ class RegionNewton {
   bool Direction(const Eigen::VectorXd& x, const Eigen::VectorXd& force, Eigen::VectorXd* step) {
     for (int attempt = 0; attempt < 3; ++attempt) {
       Assemble(x, attempt == 0 ? 1.0 : 0.0, attempt == 2 ? 1e-8 * MeanDiagonal() : 0.0);
-      // The lower triangle in compressed columns is the upper one in compressed rows: the backend's layout.
-      upper_ = matrix_;
-      upper_.makeCompressed();
-      if (!analysed_ || upper_.nonZeros() != static_cast<Eigen::Index>(pattern_.row_indices.size())) {
-        pattern_.n = static_cast<int>(upper_.rows());
-        pattern_.column_starts.assign(upper_.outerIndexPtr(), upper_.outerIndexPtr() + upper_.rows() + 1);
-        pattern_.row_indices.assign(upper_.innerIndexPtr(), upper_.innerIndexPtr() + upper_.nonZeros());
+      if (!analysed_ || matrix_.nonZeros() != static_cast<Eigen::Index>(pattern_.row_indices.size())) {
+        pattern_.n = static_cast<int>(matrix_.rows());
+        pattern_.column_starts.assign(matrix_.outerIndexPtr(), matrix_.outerIndexPtr() + matrix_.rows() + 1);
+        pattern_.row_indices.assign(matrix_.innerIndexPtr(), matrix_.innerIndexPtr() + matrix_.nonZeros());
         cholesky_ = SparseCholesky::Create(options_.linear_solver);
         cholesky_->Analyze(pattern_);
         analysed_ = true;
       }
-      const FactorStatus status = cholesky_->Factorize(upper_.valuePtr());
+      const FactorStatus status = cholesky_->Factorize(matrix_.valuePtr());
       ++result_.factorizations;
       if (attempt > 0) ++result_.projected_factorizations;
       if (status == FactorStatus::kOk) {
@@ -229,8 +226,8 @@ class RegionNewton {
   std::vector<char> spring_marked_;
   std::vector<int> springs_in_;   // springs with an endpoint in the region
   std::vector<Eigen::Triplet<double>> triplets_;
-  Eigen::SparseMatrix<double> matrix_;
-  Eigen::SparseMatrix<double, Eigen::RowMajor> upper_;
+  // The lower triangle stored by rows, which is the upper one by columns: the backend's layout (SymmetricPattern).
+  Eigen::SparseMatrix<double, Eigen::RowMajor> matrix_;
   SymmetricPattern pattern_;  // the region's, analysed by cholesky_ (which keeps a pointer to it)
   std::unique_ptr<SparseCholesky> cholesky_;
   bool analysed_ = false;
