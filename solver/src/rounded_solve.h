@@ -20,9 +20,19 @@ struct SupernodalFactor {
   const float* values = nullptr;
 };
 
+// The instruction sets the kernels below are compiled for. Each gives the same answer to the bit (same operations in
+// the same order, no fused multiply-adds); a machine uses the best it has, and a kernel asked for one the machine
+// lacks runs the generic one.
+enum class KernelIsa { kGeneric, kAvx2, kAvx512 };
+KernelIsa BestKernelIsa();
+
 // x = P^T L^{-T} L^{-1} P b. L's entries are read as floats and every sum is in double, in a fixed order (the
 // same answer on every run and machine). y: n doubles of workspace; w: at least the largest number of rows
-// below a supernode's diagonal block (1 if none).
-void RoundedSupernodalSolve(const SupernodalFactor& factor, const double* b, double* x, double* y, double* w);
+// below a supernode's diagonal block (1 if none); t: at least the most columns of a supernode.
+void RoundedSupernodalSolve(const SupernodalFactor& factor, const double* b, double* x, double* y, double* w,
+                            double* t, KernelIsa isa = BestKernelIsa());
+
+// The most columns of a supernode (t's size above).
+int MaxSupernodeColumns(const SupernodalFactor& factor);
 
 }  // namespace springblend::internal

@@ -107,7 +107,7 @@ class CholmodCholesky final : public SparseCholesky {
     view.rows = static_cast<const int*>(factor_->s);
     view.values = rounded_.data();
     y_.resize(view.n);
-    RoundedSupernodalSolve(view, b, x, y_.data(), w_.data());
+    RoundedSupernodalSolve(view, b, x, y_.data(), w_.data(), t_.data());
   }
 
   void Solve(const double* b, double* x) override {
@@ -144,6 +144,10 @@ class CholmodCholesky final : public SparseCholesky {
     rounded_.resize(factor_->xsize);
     for (size_t k = 0; k < factor_->xsize; ++k) rounded_[k] = static_cast<float>(values[k]);
     w_.resize(std::max<size_t>(factor_->maxesize, 1));
+    SupernodalFactor view;
+    view.nsuper = static_cast<int>(factor_->nsuper);
+    view.super = static_cast<const int*>(factor_->super);
+    t_.resize(MaxSupernodeColumns(view));
   }
 
   // Mutable because lnz is read from it after analysis.
@@ -151,7 +155,7 @@ class CholmodCholesky final : public SparseCholesky {
   const SymmetricPattern* pattern_ = nullptr;
   bool round_ = true;
   std::vector<float> rounded_;
-  std::vector<double> y_, w_;
+  std::vector<double> y_, w_, t_;
   cholmod_factor* factor_ = nullptr;
   double solves_per_factorization_ = 1.0;
   cholmod_dense* solution_ = nullptr;

@@ -236,7 +236,9 @@ TEST_P(LinearSystemTest, PreconditioningIsAFixedSymmetricOperatorCloseToTheSolve
     EXPECT_NEAR(u.dot(pv), v.dot(pu), 1e-12 * scale) << "held " << held_count;
     EXPECT_LT((sum - pu - pv).norm(), 1e-12 * sum.norm()) << "held " << held_count;
     for (int d = 0; d < n; ++d) {
-      if (held[d]) EXPECT_EQ(pu[d], 0.0);
+      if (held[d]) {
+        EXPECT_EQ(pu[d], 0.0);
+      }
     }
   }
 }

@@ -1,0 +1,148 @@
+// The preconditioner's triangular solves with a CHOLMOD supernodal factor rounded to single precision: close to
+// CHOLMOD's own solve, and the same to the bit whichever instruction set's kernel runs.
+#include "rounded_solve.h"
+
+#include <cholmod.h>
+#include <gtest/gtest.h>
+
+#include <Eigen/Core>
+#include <cmath>
+#include <vector>
+
+#include "hessian_pattern.h"
+
+namespace springblend::internal {
+namespace {
+
+// A side x side grid of vertices with springs to eight neighbours and two steps along each axis: the 3n x 3n
+// pattern of a surface's Hessian, whose separators make supernodes with many columns and rows below them. The
+// values are diagonally dominant, with entries spread over several orders of magnitude (stiff and soft springs).
+class GridFactor {
+ public:
+  explicit GridFactor(int side) {
+    std::vector<int> a, b;
+    for (int i = 0; i < side; ++i) {
+      for (int j = 0; j < side; ++j) {
+        const int v = i * side + j;
+        const auto spring = [&](int w) { a.push_back(v), b.push_back(w); };
+        if (j + 1 < side) spring(v + 1);
+        if (i + 1 < side) spring(v + side);
+        if (i + 1 < side && j + 1 < side) spring(v + side + 1);
+        if (i + 1 < side && j > 0) spring(v + side - 1);
+        if (j + 2 < side) spring(v + 2);
+        if (i + 2 < side) spring(v + 2 * side);
+      }
+    }
+    pattern_ = HessianPattern::Build(side * side, a, b);
+    const SymmetricPattern& m = pattern_.matrix;
+    values_.assign(m.row_indices.size(), 0.0);
+    std::vector<double> row_sum(m.n, 0.0);
+    for (int j = 0; j < m.n; ++j) {
+      for (int k = m.column_starts[j]; k < m.column_starts[j + 1]; ++k) {
+        const int i = m.row_indices[k];
+        if (i == j) continue;
+        // Deterministic pseudo-random magnitudes over four decades, both signs.
+        const double u = std::sin(12.9898 * i + 78.233 * j) * 43758.5453;
+        const double f = u - std::floor(u);
+        values_[k] = (f < 0.5 ? -1.0 : 1.0) * std::pow(10.0, 4.0 * f - 2.0);
+        row_sum[i] += std::abs(values_[k]);
+        row_sum[j] += std::abs(values_[k]);
+      }
+    }
+    for (int j = 0; j < m.n; ++j) {
+      for (int k = m.column_starts[j]; k < m.column_starts[j + 1]; ++k) {
+        if (m.row_indices[k] == j) values_[k] = row_sum[j] + 1e-3;
+      }
+    }
+    cholmod_start(&common_);
+    common_.supernodal = CHOLMOD_SUPERNODAL;
+    cholmod_sparse s{};
+    s.nrow = s.ncol = m.n;
+    s.nzmax = m.row_indices.size();
+    s.p = const_cast<int*>(m.column_starts.data());  // NOLINT: read only
+    s.i = const_cast<int*>(m.row_indices.data());    // NOLINT: read only
+    s.x = values_.data();
+    s.stype = 1;
+    s.itype = CHOLMOD_INT;
+    s.xtype = CHOLMOD_REAL;
+    s.dtype = CHOLMOD_DOUBLE;
+    s.sorted = s.packed = 1;
+    factor_ = cholmod_analyze(&s, &common_);
+    cholmod_factorize(&s, factor_, &common_);
+    const double* x = static_cast<const double*>(factor_->x);
+    floats_.assign(x, x + factor_->xsize);
+    view_.n = m.n;
+    view_.nsuper = static_cast<int>(factor_->nsuper);
+    view_.perm = static_cast<const int*>(factor_->Perm);
+    view_.super = static_cast<const int*>(factor_->super);
+    view_.pi = static_cast<const int*>(factor_->pi);
+    view_.px = static_cast<const int*>(factor_->px);
+    view_.rows = static_cast<const int*>(factor_->s);
+    view_.values = floats_.data();
+    y_.resize(m.n);
+    w_.resize(std::max<size_t>(factor_->maxesize, 1));
+    t_.resize(MaxSupernodeColumns(view_));
+  }
+  ~GridFactor() {
+    cholmod_free_factor(&factor_, &common_);
+    cholmod_finish(&common_);
+  }
+  GridFactor(const GridFactor&) = delete;
+  GridFactor& operator=(const GridFactor&) = delete;
+
+  int n() const { return view_.n; }
+  int widest() const { return MaxSupernodeColumns(view_); }
+  Eigen::VectorXd Exact(const Eigen::VectorXd& b) {
+    cholmod_dense rhs{};
+    rhs.nrow = rhs.nzmax = rhs.d = n();
+    rhs.ncol = 1;
+    rhs.x = const_cast<double*>(b.data());  // NOLINT: read only
+    rhs.xtype = CHOLMOD_REAL;
+    rhs.dtype = CHOLMOD_DOUBLE;
+    cholmod_dense* x = cholmod_solve(CHOLMOD_A, factor_, &rhs, &common_);
+    Eigen::VectorXd out = Eigen::Map<const Eigen::VectorXd>(static_cast<const double*>(x->x), n());
+    cholmod_free_dense(&x, &common_);
+    return out;
+  }
+  Eigen::VectorXd Single(const Eigen::VectorXd& b, KernelIsa isa) {
+    Eigen::VectorXd x(n());
+    RoundedSupernodalSolve(view_, b.data(), x.data(), y_.data(), w_.data(), t_.data(), isa);
+    return x;
+  }
+
+ private:
+  HessianPattern pattern_;
+  std::vector<double> values_;
+  cholmod_common common_{};
+  cholmod_factor* factor_ = nullptr;
+  std::vector<float> floats_;
+  SupernodalFactor view_;
+  std::vector<double> y_, w_, t_;
+};
+
+TEST(RoundedSolve, ASinglePrecisionFactorSolvesCloseToTheDoubleFactor) {
+  GridFactor grid(30);
+  ASSERT_GT(grid.widest(), 8);  // supernodes wide enough for the kernels' four-column and eight-lane paths
+  const Eigen::VectorXd b = Eigen::VectorXd::LinSpaced(grid.n(), -1.0, 2.0).array().cos().matrix();
+  const Eigen::VectorXd exact = grid.Exact(b);
+  const Eigen::VectorXd single = grid.Single(b, BestKernelIsa());
+  // A float keeps 24 significant bits: the factor's rounding, times the (small) condition of this system.
+  EXPECT_LT((single - exact).norm(), 1e-6 * exact.norm());
+  EXPECT_GT((single - exact).norm(), 0.0);  // the rounded factor is what was read
+}
+
+TEST(RoundedSolve, EveryInstructionSetGivesTheSameBits) {
+  GridFactor grid(30);
+  const Eigen::VectorXd b = Eigen::VectorXd::LinSpaced(grid.n(), 3.0, -5.0).array().sin().matrix();
+  const Eigen::VectorXd single = grid.Single(b, KernelIsa::kGeneric);
+  for (const KernelIsa isa : {KernelIsa::kAvx2, KernelIsa::kAvx512}) {
+    // On a machine without the instruction set the generic kernel runs, and the test holds trivially.
+    const Eigen::VectorXd s = grid.Single(b, isa);
+    for (int i = 0; i < grid.n(); ++i) {
+      ASSERT_EQ(s[i], single[i]) << "single, isa " << static_cast<int>(isa) << ", entry " << i;
+    }
+  }
+}
+
+}  // namespace
+}  // namespace springblend::internal
