@@ -66,7 +66,8 @@ for line in open(symbols):
     s = s.replace("(anonymous namespace)::", "")
     if "HessianProduct" in s:
         g = order[3]
-    elif "Cholesky::Precondition" in s:  # our supernodal solve with the factor rounded to single precision
+    elif "Cholesky::Precondition" in s or re.search(r"RoundedSupernodalSolve|Solve(Avx512|Avx2|Generic)\b", s):
+        # our supernodal solve with the factor rounded to single precision (rounded_solve.cc's kernels)
         g = order[1]
     elif "SpringSystem::Run" in s or "SpringSystem::Energy" in s:
         g = order[2]

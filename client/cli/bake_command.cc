@@ -135,7 +135,7 @@ nlohmann::json SummaryJson(const BakedRig& baked, const std::string& dir) {
     std::vector<double> weights;
     for (const BakedShape& s : t.inbetweens) weights.push_back(s.weight);
     targets.push_back({{"name", t.name}, {"inbetweens", weights}, {"snaps", t.snaps}, {"max_error", t.max_error},
-                       {"linear_error", t.linear_error}});
+                       {"linear_error", t.linear_error}, {"floor", t.floor}});
   }
   nlohmann::json combinations = nlohmann::json::array();
   for (const BakedCombination& c : baked.combinations) {
@@ -156,6 +156,8 @@ nlohmann::json SummaryJson(const BakedRig& baked, const std::string& dir) {
           {"snaps", s.snaps},
           {"max_error", s.max_error},
           {"linear_max_error", s.linear_max_error},
+          {"floor", s.floor},
+          {"pair_floor", s.pair_floor},
           {"inbetweens", s.solved_inbetweens ? "solved" : "fitted"},
           {"inbetweens_ms", s.inbetweens_ms},
           {"ms", s.ms}};

@@ -6,6 +6,7 @@
 #include <tbb/parallel_for.h>
 
 #include <algorithm>
+#include <array>
 #include <chrono>
 #include <cmath>
 #include <functional>
@@ -116,6 +117,61 @@ class KnotSearch {
   std::vector<std::vector<double>> best_;
   std::vector<std::vector<int>> from_;
 };
+
+// A lower bound of the largest error at the samples of any piecewise-linear path with `count` interior knots,
+// wherever the knots are and whatever the path's values (continuous or not). Whatever the knots, the samples fall
+// into count + 1 runs of consecutive samples, each within one straight piece L. For samples i < k < j of one run,
+// p_k minus the chord of p_i and p_j at k equals e_k - (1 - s) e_i - s e_j with e the piece's errors (L is its own
+// chord), so the piece's largest error is at least half the chord error err[i][j]. The least, over every split of
+// the samples into runs, of the largest such half is the bound (dynamic programming, as KnotSearch).
+double PiecewiseLinearFloor(const SegmentErrors& err, int count) {
+  const int n = static_cast<int>(err.size()) - 1;
+  const double inf = std::numeric_limits<double>::infinity();
+  // low[r][j]: the least bound over samples 0..j split into r + 1 runs.
+  std::vector<double> low(n + 1);
+  for (int j = 0; j <= n; ++j) low[j] = 0.5 * err[0][j];
+  for (int r = 1; r <= count; ++r) {
+    std::vector<double> next(n + 1, inf);
+    for (int j = 0; j <= n; ++j) {
+      next[j] = low[j];  // fewer runs than allowed
+      for (int i = 1; i <= j; ++i) next[j] = std::min(next[j], std::max(low[i - 1], 0.5 * err[i][j]));
+    }
+    low = std::move(next);
+  }
+  return low[n];
+}
+
+// A lower bound of the largest error, over a pair's frames at weights {0, 1/2, 1}^2 (grid[i][j]: the solved shape
+// with the first target at i/2 and the second at j/2), of any rig that plays the pair as each target alone (any
+// function of its own weight: in-betweens, however many) plus a corrective on by the product of the weights. On a
+// rectangle of the grid with corners (a1, b1), (a2, b2), the mixed difference F(a2, b2) - F(a1, b2) - F(a2, b1) +
+// F(a1, b1) of such a rig is its corrective times the rectangle's area A, whatever its in-betweens; so the solved
+// shapes' mixed differences D over A must agree between rectangles up to the rig's errors: |D_R / A_R - D_S / A_S|
+// is at most 4 E / A_R + 4 E / A_S, for every vertex and every two rectangles R and S.
+double PairFloor(const std::array<std::array<const Points*, 3>, 3>& grid) {
+  struct Rectangle {
+    Points slope;  // D / A
+    double area = 0.0;
+  };
+  std::vector<Rectangle> rectangles;
+  constexpr int kSpans[3][2] = {{0, 1}, {1, 2}, {0, 2}};
+  for (const auto& sa : kSpans) {
+    for (const auto& sb : kSpans) {
+      const double area = 0.25 * (sa[1] - sa[0]) * (sb[1] - sb[0]);
+      const Points difference =
+          *grid[sa[1]][sb[1]] - *grid[sa[0]][sb[1]] - *grid[sa[1]][sb[0]] + *grid[sa[0]][sb[0]];
+      rectangles.push_back({difference / area, area});
+    }
+  }
+  double floor = 0.0;
+  for (size_t r = 0; r < rectangles.size(); ++r) {
+    for (size_t q = r + 1; q < rectangles.size(); ++q) {
+      const double gap = std::sqrt((rectangles[r].slope - rectangles[q].slope).rowwise().squaredNorm().maxCoeff());
+      floor = std::max(floor, gap / (4.0 / rectangles[r].area + 4.0 / rectangles[q].area));
+    }
+  }
+  return floor;
+}
 
 // The knots' shapes that make the largest distance of the piecewise-linear path from the samples smallest, from
 // `start->values` (never worse than them): each vertex on its own (the vertices are independent, so the largest over them is then smallest too)
@@ -250,10 +306,10 @@ void FitKnots(const std::vector<Points>& shapes, const std::vector<double>& alph
 constexpr int kKnotRounds = 8;
 constexpr double kNearLargest = 0.25;
 
+// chords: ChordErrors of the shapes.
 Inbetweens ChooseInbetweens(const std::vector<Points>& shapes, const std::vector<double>& alphas,
-                            const BakeOptions& options, double diagonal) {
+                            const SegmentErrors& chords, const BakeOptions& options, double diagonal) {
   const int n = static_cast<int>(shapes.size()) - 1;
-  const SegmentErrors chords = ChordErrors(shapes, alphas, diagonal);
   const KnotSearch search(chords, options.inbetweens, 1.0);
   const auto solved = [&](int k) {
     Inbetweens in;
@@ -545,6 +601,7 @@ BakedRig BakeRig(const BakeInput& input, const FrameSource& frames, const BakeOp
   // 2. its in-betweens.
   const int uniform = options.samples;
   baked.targets.resize(m);
+  std::vector<Points> halfway(m);  // each target's solved shape at 1/2, where a sample lies there (the pairs' floor)
   for (int t = 0; t < m; ++t) {
     std::vector<double> alphas(uniform + 1);
     for (int j = 0; j <= uniform; ++j) alphas[j] = static_cast<double>(j) / uniform;
@@ -573,7 +630,9 @@ BakedRig BakeRig(const BakeInput& input, const FrameSource& frames, const BakeOp
     summary.snaps += snaps;
     const int n = static_cast<int>(shapes.size()) - 1;
     const auto choosing = std::chrono::steady_clock::now();
-    Inbetweens chosen = ChooseInbetweens(shapes, alphas, options, input.diagonal);
+    const SegmentErrors chords = ChordErrors(shapes, alphas, input.diagonal);
+    Inbetweens chosen = ChooseInbetweens(shapes, alphas, chords, options, input.diagonal);
+    const double floor = PiecewiseLinearFloor(chords, static_cast<int>(chosen.knots.size()));
     summary.inbetweens_ms += Elapsed(choosing);
     BakedTarget& target = baked.targets[t];
     target.name = input.target_names[t];
@@ -582,17 +641,22 @@ BakedRig BakeRig(const BakeInput& input, const FrameSource& frames, const BakeOp
       target.inbetweens.push_back({alphas[chosen.knots[k]], std::move(chosen.values[k])});
     }
     target.full = shapes[n];
+    for (int j = 0; j <= n; ++j) {
+      if (alphas[j] == 0.5) halfway[t] = shapes[j];
+    }
     target.max_error = chosen.error;
     double linear = 0.0;
     for (int j = 1; j < n; ++j) {
       linear = std::max(linear, Distance(shapes[j], (1.0 - alphas[j]) * shapes[0] + alphas[j] * shapes[n]));
     }
     target.linear_error = linear / input.diagonal;
+    target.floor = floor;
     if (options.progress) options.progress("paths", t + 1, m);
   }
   for (const BakedTarget& t : baked.targets) {
     summary.max_error = std::max(summary.max_error, t.max_error);
     summary.linear_max_error = std::max(summary.linear_max_error, t.linear_error);
+    summary.floor = std::max(summary.floor, t.floor);
   }
 
   // 3. Combinations: the rig's own, and the pairs asked for or found. A pair is a candidate where the two
@@ -677,6 +741,19 @@ BakedRig BakeRig(const BakeInput& input, const FrameSource& frames, const BakeOp
   }
   std::vector<SolvedShape> mixes;
   if (!weights.empty()) solve(weights, &mixes);
+  // The pairs' floor, where the pair's frames on the grid {0, 1/2, 1}^2 are all solved.
+  for (size_t c = 0; c < candidates.size(); ++c) {
+    const Candidate& candidate = candidates[c];
+    const int a = candidate.drivers[0];
+    if (candidate.forced || halfway[a].size() == 0 || halfway[candidate.drivers[1]].size() == 0) continue;
+    const int b = candidate.drivers[1];
+    const std::array<std::array<const Points*, 3>, 3> grid = {{
+        {&input.rest, &halfway[b], &baked.targets[b].full},
+        {&halfway[a], &mixes[checks_of[c]].positions, &mixes[checks_of[c] + 2].positions},
+        {&baked.targets[a].full, &mixes[checks_of[c] + 1].positions, &mixes[c].positions},
+    }};
+    summary.pair_floor = std::max(summary.pair_floor, PairFloor(grid) / input.diagonal);
+  }
   for (size_t c = 0; c < candidates.size(); ++c) {
     const Candidate& candidate = candidates[c];
     const std::vector<double> w = unit(candidate.drivers);

@@ -218,6 +218,39 @@ TEST_F(BakeTest, MoreInbetweensNeverDoWorseAndATolerancePicksTheFewest) {
   for (const BakedTarget& t : BakeRig(input, frames, loose).targets) EXPECT_TRUE(t.inbetweens.empty()) << t.name;
 }
 
+// BakedTarget::floor is a lower bound for any piecewise-linear rig with as many in-betweens: the bake's own fitted
+// and solved in-betweens never beat it, it falls (or stays) with more in-betweens, and with none it is half the
+// straight blend's error (the one straight piece from the rest shape to the target can at best halve it).
+TEST_F(BakeTest, TheFloorBoundsEveryBakeWithAsManyInbetweens) {
+  const BakeInput input = BakeInputOf(*rig());
+  const FrameSource frames = LocalFrameSource(rig());
+  std::vector<double> last(input.target_names.size(), std::numeric_limits<double>::infinity());
+  for (int k : {0, 1, 3}) {
+    for (const bool solved : {false, true}) {
+      BakeOptions options;
+      options.samples = 8;
+      options.inbetweens = k;
+      options.solved_inbetweens = solved;
+      options.pair_mode = BakePairs::kNone;
+      const BakedRig b = BakeRig(input, frames, options);
+      double largest = 0.0;
+      for (size_t t = 0; t < b.targets.size(); ++t) {
+        const BakedTarget& target = b.targets[t];
+        SCOPED_TRACE(target.name + ", " + std::to_string(k) + " in-betweens" + (solved ? ", solved" : ", fitted"));
+        EXPECT_GT(target.floor, 0.0);  // both targets bend or twist: no straight piece follows them
+        EXPECT_LE(target.floor, target.max_error * (1.0 + 1e-12));
+        EXPECT_LE(target.floor, last[t] * (1.0 + 1e-12));
+        if (k == 0) {
+          EXPECT_NEAR(target.floor, 0.5 * target.linear_error, 1e-15);
+        }
+        largest = std::max(largest, target.floor);
+        if (solved) last[t] = target.floor;
+      }
+      EXPECT_EQ(b.summary.floor, largest);
+    }
+  }
+}
+
 TEST_F(BakeTest, APairFoundByTheSearchIsKeptOnlyWhereItPaysAndThenReproducesItsMix) {
   // The same cylinder without its combination: bend and twist move a common region, so their pair is a candidate.
   std::vector<TriangleMesh> targets = {LoadMesh(DataPath("cylinder/poses-2_cylinder-2.obj")),
@@ -256,6 +289,19 @@ TEST_F(BakeTest, APairFoundByTheSearchIsKeptOnlyWhereItPaysAndThenReproducesItsM
   ASSERT_EQ(l.combinations.size(), 1u);
   EXPECT_EQ(l.combinations[0].drivers, (std::vector<int>{0, 1}));
   EXPECT_LE(MaxDistance(l.Evaluate({1.0, 1.0}), mix), 1e-9 * diagonal);
+  // The pairs' floor bounds every one of these rigs over the pair's frames at {0, 1/2, 1}^2 (in-betweens and a
+  // corrective on by the product of the weights, or none), and is not trivially 0: bend and twist interact.
+  EXPECT_GT(b.summary.pair_floor, 0.0);
+  EXPECT_EQ(without.summary.pair_floor, 0.0);  // no candidates, no floor
+  for (const BakedRig* rig : {&b, &without, &l}) {
+    double largest = 0.0;
+    for (const double wa : {0.0, 0.5, 1.0}) {
+      for (const double wb : {0.0, 0.5, 1.0}) {
+        largest = std::max(largest, MaxDistance(rig->Evaluate({wa, wb}), Solved(plain, {wa, wb})) / diagonal);
+      }
+    }
+    EXPECT_LE(b.summary.pair_floor, largest * (1.0 + 1e-12));
+  }
 }
 
 // A path that snaps between two samples (a fold: here a made-up one, at weight 0.3712, on a path that is linear

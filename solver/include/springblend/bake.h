@@ -90,6 +90,9 @@ struct BakedTarget {
   int snaps = 0;              // places where the path snaps between samples (a fold), located by bisection
   double max_error = 0.0;     // largest distance of a vertex, baked against solved, over the path's samples
   double linear_error = 0.0;  // the same for the straight blend from the rest shape to `full`
+  // A lower bound of max_error for any rig that plays this target piecewise linearly with as many in-betweens,
+  // wherever they are and whatever their shapes: the format's own floor on this path (bake.cc says why).
+  double floor = 0.0;
 };
 struct BakedCombination {
   std::string name;
@@ -107,6 +110,11 @@ struct BakeSummary {
   int snaps = 0;          // over the targets' paths: snaps located between samples
   double max_error = 0.0;  // over every target's path samples, of the diagonal
   double linear_max_error = 0.0;
+  double floor = 0.0;  // the largest of the targets' floors
+  // kAuto: a lower bound of the largest error, over a candidate pair's frames at weights {0, 1/2, 1}^2, of any rig
+  // that plays each target alone however it likes (any in-betweens) plus a corrective on by the product of the
+  // weights; the largest over the candidate pairs (bake.cc says why). 0 without candidates.
+  double pair_floor = 0.0;
   bool solved_inbetweens = false;  // BakeOptions::solved_inbetweens
   double inbetweens_ms = 0.0;  // choosing (and fitting) the in-betweens, part of ms
   double ms = 0.0;
