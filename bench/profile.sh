@@ -3,8 +3,8 @@
 # only) on one row, attaches `perf record` once the rig is built, and writes OUT/profile.md: the samples of the
 # process grouped by where they fall (the 3n factorization: CHOLMOD's numeric factorization and the dense BLAS
 # kernels it calls; the triangular solves with the factor; the spring passes; the Hessian products of the
-# conjugate gradients; threading and the kernel; the rest), and the top symbols. Skips cleanly (exit 0, a line
-# in profile.md) when perf is missing or not permitted, or the row's meshes are absent.
+# conjugate gradients; threading and the kernel; the rest), and the top symbols (every symbol in OUT/symbols.txt).
+# Skips cleanly (exit 0, a line in profile.md) when perf is missing or not permitted, or the row's meshes are absent.
 #   bash bench/profile.sh BUILD_DIR OUT_DIR [ROW [STEPS [METHOD [SHARED]]]]
 #   (default: face 12 newton, and springblend-bench's own default for the shared meshes)
 set -euo pipefail
@@ -45,6 +45,7 @@ wait "$recorder" || true
 perf report -i "$work/perf.data" --no-children --sort dso,symbol --stdio --percent-limit 0 2> /dev/null |
   grep -E '^ +[0-9.]+%' > "$work/symbols.txt" || true
 [ -s "$work/symbols.txt" ] || skip "perf recorded no samples"
+cp "$work/symbols.txt" "$out/symbols.txt"
 # Group the self samples. BLAS level-3 kernels and copies run inside CHOLMOD's supernodal factorization; the
 # level-2 ones (trsv, gemv) inside its triangular solves with one right-hand side; Precondition is our own
 # triangular solve with the factor rounded to single precision (the conjugate gradients' preconditioner).

@@ -4,6 +4,8 @@
 #include <cstddef>
 #include <cstring>
 
+#include <tbb/parallel_invoke.h>
+
 // Every sum has a fixed order: eight lanes (GCC's generic vectors, which the compiler splits into what the machine
 // has) summed pairwise at the end, then the tail. The kernels are compiled for AVX-512, AVX2 and plain x86-64 (the
 // best the machine has is used), with floating-point contraction off (solver/CMakeLists.txt), so each does the same
@@ -48,112 +50,233 @@ SPRINGBLEND_INLINE const float* Column(const float* first, int j, int nsrow) {
   return first + static_cast<std::ptrdiff_t>(j) * nsrow;
 }
 
-SPRINGBLEND_INLINE void Solve(const SupernodalFactor& factor, const double* b, double* x, double* y, double* w,
-                              double* t) {
-  const int n = factor.n;
-  const int* perm = factor.perm;
-  const int* super = factor.super;
-  const int* pi = factor.pi;
-  const int* px = factor.px;
-  const int* rows = factor.rows;
-  const float* lx = factor.values;
-  for (int k = 0; k < n; ++k) y[k] = b[perm[k]];
-  const int nsuper = factor.nsuper;
-  // Forward, L y = P b. Column j: y_j /= L_jj, and the rows below lose L_rj y_j.
-  for (int s = 0; s < nsuper; ++s) {
-    const int k1 = super[s], nscol = super[s + 1] - k1;
-    const int nsrow = pi[s + 1] - pi[s], below = nsrow - nscol;
-    const float* ls = lx + px[s];
-    for (int j = 0; j < nscol; ++j) {
-      const float* col = Column(ls, j, nsrow);
-      const double yj = y[k1 + j] / col[j];
-      y[k1 + j] = yj;
-      for (int r = j + 1; r < nscol; ++r) y[k1 + r] -= col[r] * yj;
-    }
-    if (below == 0) continue;
-    // w = L21 y1, four columns at a time (w is read and written once per four).
-    std::fill(w, w + below, 0.0);
-    int j = 0;
-    for (; j + 4 <= nscol; j += 4) {
-      const float* c0 = Column(ls, j, nsrow) + nscol;
-      const float* c1 = c0 + nsrow;
-      const float* c2 = c1 + nsrow;
-      const float* c3 = c2 + nsrow;
-      const double y0 = y[k1 + j], y1 = y[k1 + j + 1], y2 = y[k1 + j + 2], y3 = y[k1 + j + 3];
-      int r = 0;
-      for (; r + kLanes <= below; r += kLanes) {
-        const Doubles sum = (Load8(c0 + r) * y0 + Load8(c1 + r) * y1) + (Load8(c2 + r) * y2 + Load8(c3 + r) * y3);
-        const Doubles wr = LoadDoubles(w + r) + sum;
-        std::memcpy(w + r, &wr, sizeof wr);
-      }
-      for (; r < below; ++r) w[r] += (c0[r] * y0 + c1[r] * y1) + (c2[r] * y2 + c3[r] * y3);
-    }
-    for (; j < nscol; ++j) {
-      const float* c = Column(ls, j, nsrow) + nscol;
-      const double yj = y[k1 + j];
-      for (int r = 0; r < below; ++r) w[r] += c[r] * yj;
-    }
-    const int* srows = rows + pi[s] + nscol;
-    for (int r = 0; r < below; ++r) y[srows[r]] -= w[r];
+// Forward, the diagonal block of supernode s: y_j /= L_jj, and the block's rows below j lose L_rj y_j.
+SPRINGBLEND_INLINE void ForwardDiagonal(const SupernodalFactor& factor, int s, double* y) {
+  const int k1 = factor.super[s], nscol = factor.super[s + 1] - k1;
+  const int nsrow = factor.pi[s + 1] - factor.pi[s];
+  const float* ls = factor.values + factor.px[s];
+  for (int j = 0; j < nscol; ++j) {
+    const float* col = Column(ls, j, nsrow);
+    const double yj = y[k1 + j] / col[j];
+    y[k1 + j] = yj;
+    for (int r = j + 1; r < nscol; ++r) y[k1 + r] -= col[r] * yj;
   }
-  // Backward, L^T x = y. Column j: y_j = (y_j - sum_r L_rj y_r) / L_jj, the rows below first (t_j, four columns at
-  // a time: w, the values at the rows below, is read once per four), then the diagonal block.
-  for (int s = nsuper - 1; s >= 0; --s) {
-    const int k1 = super[s], nscol = super[s + 1] - k1;
-    const int nsrow = pi[s + 1] - pi[s], below = nsrow - nscol;
-    const float* ls = lx + px[s];
-    const int* srows = rows + pi[s] + nscol;
-    std::fill(t, t + nscol, 0.0);
-    if (below > 0) {
-      for (int r = 0; r < below; ++r) w[r] = y[srows[r]];
-      int j = 0;
-      for (; j + 4 <= nscol; j += 4) {
-        const float* c0 = Column(ls, j, nsrow) + nscol;
-        const float* c1 = c0 + nsrow;
-        const float* c2 = c1 + nsrow;
-        const float* c3 = c2 + nsrow;
-        Doubles a0 = {}, a1 = {}, a2 = {}, a3 = {};
-        int r = 0;
-        for (; r + kLanes <= below; r += kLanes) {
-          const Doubles wv = LoadDoubles(w + r);
-          a0 += Load8(c0 + r) * wv;
-          a1 += Load8(c1 + r) * wv;
-          a2 += Load8(c2 + r) * wv;
-          a3 += Load8(c3 + r) * wv;
-        }
-        double t0 = Sum(a0), t1 = Sum(a1), t2 = Sum(a2), t3 = Sum(a3);
-        for (; r < below; ++r) {
-          t0 += c0[r] * w[r];
-          t1 += c1[r] * w[r];
-          t2 += c2[r] * w[r];
-          t3 += c3[r] * w[r];
-        }
-        t[j] = t0;
-        t[j + 1] = t1;
-        t[j + 2] = t2;
-        t[j + 3] = t3;
-      }
-      for (; j < nscol; ++j) t[j] = Dot(Column(ls, j, nsrow) + nscol, w, below);
-    }
-    for (int j = nscol - 1; j >= 0; --j) {
-      const float* col = Column(ls, j, nsrow);
-      y[k1 + j] = (y[k1 + j] - (t[j] + Dot(col + j + 1, y + k1 + j + 1, nscol - j - 1))) / col[j];
-    }
-  }
-  for (int k = 0; k < n; ++k) x[perm[k]] = y[k];
 }
 
-// The kernel once per instruction set.
-void SolveGeneric(const SupernodalFactor& factor, const double* b, double* x, double* y, double* w, double* t) {
-  Solve(factor, b, x, y, w, t);
+// Forward, rows [r0, r1) below the diagonal block of supernode s: w = L21 y1 there, four columns at a time (w is read
+// and written once per four), then the rows lose it: from y, or summed into acc where top_row marks the row (a
+// bin's updates to the tree's top). Each row's sum is the same whatever the range, so halves give the same bits.
+SPRINGBLEND_INLINE void ForwardBelow(const SupernodalFactor& factor, int s, int r0, int r1, double* y, double* w,
+                                     const char* top_row, double* acc) {
+  const int k1 = factor.super[s], nscol = factor.super[s + 1] - k1;
+  const int nsrow = factor.pi[s + 1] - factor.pi[s];
+  const float* ls = factor.values + factor.px[s];
+  std::fill(w + r0, w + r1, 0.0);
+  int j = 0;
+  for (; j + 4 <= nscol; j += 4) {
+    const float* c0 = Column(ls, j, nsrow) + nscol;
+    const float* c1 = c0 + nsrow;
+    const float* c2 = c1 + nsrow;
+    const float* c3 = c2 + nsrow;
+    const double y0 = y[k1 + j], y1 = y[k1 + j + 1], y2 = y[k1 + j + 2], y3 = y[k1 + j + 3];
+    int r = r0;
+    for (; r + kLanes <= r1; r += kLanes) {
+      const Doubles sum = (Load8(c0 + r) * y0 + Load8(c1 + r) * y1) + (Load8(c2 + r) * y2 + Load8(c3 + r) * y3);
+      const Doubles wr = LoadDoubles(w + r) + sum;
+      std::memcpy(w + r, &wr, sizeof wr);
+    }
+    for (; r < r1; ++r) w[r] += (c0[r] * y0 + c1[r] * y1) + (c2[r] * y2 + c3[r] * y3);
+  }
+  for (; j < nscol; ++j) {
+    const float* c = Column(ls, j, nsrow) + nscol;
+    const double yj = y[k1 + j];
+    for (int r = r0; r < r1; ++r) w[r] += c[r] * yj;
+  }
+  const int* srows = factor.rows + factor.pi[s] + nscol;
+  if (top_row == nullptr) {
+    for (int r = r0; r < r1; ++r) y[srows[r]] -= w[r];
+  } else {
+    for (int r = r0; r < r1; ++r) {
+      const int row = srows[r];
+      if (top_row[row]) {
+        acc[row] += w[r];
+      } else {
+        y[row] -= w[r];
+      }
+    }
+  }
 }
-__attribute__((target("avx2"))) void SolveAvx2(const SupernodalFactor& factor, const double* b, double* x, double* y,
-                                               double* w, double* t) {
-  Solve(factor, b, x, y, w, t);
+
+SPRINGBLEND_INLINE void ForwardRange(const SupernodalFactor& factor, int first, int end, double* y, double* w,
+                                     const char* top_row, double* acc) {
+  for (int s = first; s < end; ++s) {
+    ForwardDiagonal(factor, s, y);
+    const int below = (factor.pi[s + 1] - factor.pi[s]) - (factor.super[s + 1] - factor.super[s]);
+    if (below > 0) ForwardBelow(factor, s, 0, below, y, w, top_row, acc);
+  }
 }
-__attribute__((target("avx512f"))) void SolveAvx512(const SupernodalFactor& factor, const double* b, double* x,
-                                                    double* y, double* w, double* t) {
-  Solve(factor, b, x, y, w, t);
+
+// Backward, t_j = sum_r L_rj w_r over the rows below supernode s's diagonal block (w: y at those rows), for columns
+// [j0, j1), four at a time (w is read once per four); j0 a multiple of four, so halves give the same bits.
+SPRINGBLEND_INLINE void BackwardBelow(const SupernodalFactor& factor, int s, int j0, int j1, const double* w,
+                                      double* t) {
+  const int nscol = factor.super[s + 1] - factor.super[s];
+  const int nsrow = factor.pi[s + 1] - factor.pi[s], below = nsrow - nscol;
+  const float* ls = factor.values + factor.px[s];
+  int j = j0;
+  for (; j + 4 <= j1; j += 4) {
+    const float* c0 = Column(ls, j, nsrow) + nscol;
+    const float* c1 = c0 + nsrow;
+    const float* c2 = c1 + nsrow;
+    const float* c3 = c2 + nsrow;
+    Doubles a0 = {}, a1 = {}, a2 = {}, a3 = {};
+    int r = 0;
+    for (; r + kLanes <= below; r += kLanes) {
+      const Doubles wv = LoadDoubles(w + r);
+      a0 += Load8(c0 + r) * wv;
+      a1 += Load8(c1 + r) * wv;
+      a2 += Load8(c2 + r) * wv;
+      a3 += Load8(c3 + r) * wv;
+    }
+    double t0 = Sum(a0), t1 = Sum(a1), t2 = Sum(a2), t3 = Sum(a3);
+    for (; r < below; ++r) {
+      t0 += c0[r] * w[r];
+      t1 += c1[r] * w[r];
+      t2 += c2[r] * w[r];
+      t3 += c3[r] * w[r];
+    }
+    t[j] = t0;
+    t[j + 1] = t1;
+    t[j + 2] = t2;
+    t[j + 3] = t3;
+  }
+  for (; j < j1; ++j) t[j] = Dot(Column(ls, j, nsrow) + nscol, w, below);
+}
+
+SPRINGBLEND_INLINE void BackwardGather(const SupernodalFactor& factor, int s, const double* y, double* w) {
+  const int nscol = factor.super[s + 1] - factor.super[s];
+  const int below = (factor.pi[s + 1] - factor.pi[s]) - nscol;
+  const int* srows = factor.rows + factor.pi[s] + nscol;
+  for (int r = 0; r < below; ++r) w[r] = y[srows[r]];
+}
+
+// Backward, the diagonal block: y_j = (y_j - t_j - sum_r L_rj y_r over the block's rows below j) / L_jj.
+SPRINGBLEND_INLINE void BackwardDiagonal(const SupernodalFactor& factor, int s, double* y, const double* t) {
+  const int k1 = factor.super[s], nscol = factor.super[s + 1] - k1;
+  const int nsrow = factor.pi[s + 1] - factor.pi[s];
+  const float* ls = factor.values + factor.px[s];
+  for (int j = nscol - 1; j >= 0; --j) {
+    const float* col = Column(ls, j, nsrow);
+    y[k1 + j] = (y[k1 + j] - (t[j] + Dot(col + j + 1, y + k1 + j + 1, nscol - j - 1))) / col[j];
+  }
+}
+
+// Supernodes end - 1 down to first: the rows below first (t), then the diagonal block.
+SPRINGBLEND_INLINE void BackwardRange(const SupernodalFactor& factor, int first, int end, double* y, double* w,
+                                      double* t) {
+  for (int s = end - 1; s >= first; --s) {
+    const int nscol = factor.super[s + 1] - factor.super[s];
+    const int below = (factor.pi[s + 1] - factor.pi[s]) - nscol;
+    std::fill(t, t + nscol, 0.0);
+    if (below > 0) {
+      BackwardGather(factor, s, y, w);
+      BackwardBelow(factor, s, 0, nscol, w, t);
+    }
+    BackwardDiagonal(factor, s, y, t);
+  }
+}
+
+// The kernels once per instruction set.
+struct Kernels {
+  void (*forward_range)(const SupernodalFactor&, int, int, double*, double*, const char*, double*);
+  void (*forward_diagonal)(const SupernodalFactor&, int, double*);
+  void (*forward_below)(const SupernodalFactor&, int, int, int, double*, double*, const char*, double*);
+  void (*backward_range)(const SupernodalFactor&, int, int, double*, double*, double*);
+  void (*backward_below)(const SupernodalFactor&, int, int, int, const double*, double*);
+  void (*backward_diagonal)(const SupernodalFactor&, int, double*, const double*);
+};
+
+#define SPRINGBLEND_KERNELS(NAME, TARGET)                                                                            \
+  TARGET void NAME##ForwardRange(const SupernodalFactor& f, int a, int b, double* y, double* w, const char* top,  \
+                                 double* acc) {                                                                  \
+    ForwardRange(f, a, b, y, w, top, acc);                                                                       \
+  }                                                                                                              \
+  TARGET void NAME##ForwardDiagonal(const SupernodalFactor& f, int s, double* y) { ForwardDiagonal(f, s, y); }   \
+  TARGET void NAME##ForwardBelow(const SupernodalFactor& f, int s, int r0, int r1, double* y, double* w,         \
+                                 const char* top, double* acc) {                                                 \
+    ForwardBelow(f, s, r0, r1, y, w, top, acc);                                                                  \
+  }                                                                                                              \
+  TARGET void NAME##BackwardRange(const SupernodalFactor& f, int a, int b, double* y, double* w, double* t) {    \
+    BackwardRange(f, a, b, y, w, t);                                                                             \
+  }                                                                                                              \
+  TARGET void NAME##BackwardBelow(const SupernodalFactor& f, int s, int j0, int j1, const double* w, double* t) { \
+    BackwardBelow(f, s, j0, j1, w, t);                                                                           \
+  }                                                                                                              \
+  TARGET void NAME##BackwardDiagonal(const SupernodalFactor& f, int s, double* y, const double* t) {             \
+    BackwardDiagonal(f, s, y, t);                                                                                \
+  }                                                                                                              \
+  constexpr Kernels k##NAME = {NAME##ForwardRange,  NAME##ForwardDiagonal, NAME##ForwardBelow,                   \
+                               NAME##BackwardRange, NAME##BackwardBelow,   NAME##BackwardDiagonal};
+
+SPRINGBLEND_KERNELS(Generic, )
+SPRINGBLEND_KERNELS(Avx2, __attribute__((target("avx2"))))
+SPRINGBLEND_KERNELS(Avx512, __attribute__((target("avx512f"))))
+#undef SPRINGBLEND_KERNELS
+
+const Kernels& KernelsFor(KernelIsa isa) {
+  switch (isa) {
+    case KernelIsa::kAvx512:
+      if (__builtin_cpu_supports("avx512f")) return kAvx512;
+      break;
+    case KernelIsa::kAvx2:
+      if (__builtin_cpu_supports("avx2")) return kAvx2;
+      break;
+    case KernelIsa::kGeneric:
+      break;
+  }
+  return kGeneric;
+}
+
+// A supernode's entries the solve reads: the lower triangle of its diagonal block and the rows below.
+long NodeEntries(const SupernodalFactor& factor, int s) {
+  const long nscol = factor.super[s + 1] - factor.super[s];
+  const long below = (factor.pi[s + 1] - factor.pi[s]) - nscol;
+  return nscol * (nscol + 1) / 2 + below * nscol;
+}
+
+// A top supernode is split between the two threads when its part below the diagonal has at least this many entries
+// (a split costs a task's hand-over, a few microseconds; this many floats take about that long to stream).
+constexpr long kSplitEntries = 16384;
+
+void ForwardTop(const Kernels& k, const SupernodalFactor& factor, int s, double* y, double* w) {
+  k.forward_diagonal(factor, s, y);
+  const int nscol = factor.super[s + 1] - factor.super[s];
+  const int below = (factor.pi[s + 1] - factor.pi[s]) - nscol;
+  if (below <= 0) return;
+  if (static_cast<long>(below) * nscol < kSplitEntries || below < 2 * kLanes) {
+    k.forward_below(factor, s, 0, below, y, w, nullptr, nullptr);
+    return;
+  }
+  const int half = below / 2 / kLanes * kLanes;
+  tbb::parallel_invoke([&] { k.forward_below(factor, s, 0, half, y, w, nullptr, nullptr); },
+                       [&] { k.forward_below(factor, s, half, below, y, w, nullptr, nullptr); });
+}
+
+void BackwardTop(const Kernels& k, const SupernodalFactor& factor, int s, double* y, double* w, double* t) {
+  const int nscol = factor.super[s + 1] - factor.super[s];
+  const int below = (factor.pi[s + 1] - factor.pi[s]) - nscol;
+  std::fill(t, t + nscol, 0.0);
+  if (below > 0) {
+    BackwardGather(factor, s, y, w);
+    if (static_cast<long>(below) * nscol < kSplitEntries || nscol < 8) {
+      k.backward_below(factor, s, 0, nscol, w, t);
+    } else {
+      const int half = nscol / 2 / 4 * 4;
+      tbb::parallel_invoke([&] { k.backward_below(factor, s, 0, half, w, t); },
+                           [&] { k.backward_below(factor, s, half, nscol, w, t); });
+    }
+  }
+  k.backward_diagonal(factor, s, y, t);
 }
 
 }  // namespace
@@ -170,19 +293,166 @@ int MaxSupernodeColumns(const SupernodalFactor& factor) {
   return most;
 }
 
-void RoundedSupernodalSolve(const SupernodalFactor& factor, const double* b, double* x, double* y, double* w,
-                            double* t, KernelIsa isa) {
-  switch (isa) {
-    case KernelIsa::kAvx512:
-      if (__builtin_cpu_supports("avx512f")) return SolveAvx512(factor, b, x, y, w, t);
-      break;
-    case KernelIsa::kAvx2:
-      if (__builtin_cpu_supports("avx2")) return SolveAvx2(factor, b, x, y, w, t);
-      break;
-    case KernelIsa::kGeneric:
-      break;
+SolveSchedule PlanSolve(const SupernodalFactor& factor) {
+  SolveSchedule plan;
+  const int nsuper = factor.nsuper, n = factor.n;
+  std::vector<int> node_of(static_cast<size_t>(n), -1);
+  for (int s = 0; s < nsuper; ++s) {
+    for (int k = factor.super[s]; k < factor.super[s + 1]; ++k) node_of[static_cast<size_t>(k)] = s;
+    plan.entries += NodeEntries(factor, s);
   }
-  SolveGeneric(factor, b, x, y, w, t);
+  // The supernodal elimination tree: a supernode's parent holds its first row below the diagonal block. Subtrees
+  // must be ranges of supernodes (postorder, CHOLMOD's default), else the solve stays sequential.
+  std::vector<int> parent(static_cast<size_t>(nsuper), -1), size(static_cast<size_t>(nsuper), 1);
+  std::vector<long> work(static_cast<size_t>(nsuper), 0);
+  std::vector<std::vector<int>> children(static_cast<size_t>(nsuper));
+  std::vector<int> roots;
+  for (int s = 0; s < nsuper; ++s) {
+    const int nscol = factor.super[s + 1] - factor.super[s];
+    const int first_below = factor.pi[s] + nscol, end = factor.pi[s + 1];
+    int p = -1;
+    for (int k = first_below; k < end; ++k) {
+      const int node = node_of[static_cast<size_t>(factor.rows[k])];
+      if (p < 0 || node < p) p = node;
+    }
+    if (p >= 0 && p <= s) return plan;  // not postordered
+    parent[static_cast<size_t>(s)] = p;
+  }
+  for (int s = 0; s < nsuper; ++s) {
+    work[static_cast<size_t>(s)] += NodeEntries(factor, s);
+    const int p = parent[static_cast<size_t>(s)];
+    if (p < 0) {
+      roots.push_back(s);
+      continue;
+    }
+    work[static_cast<size_t>(p)] += work[static_cast<size_t>(s)];
+    size[static_cast<size_t>(p)] += size[static_cast<size_t>(s)];
+    children[static_cast<size_t>(p)].push_back(s);
+  }
+  // Subtree s is [s - size + 1, s]: check that its nodes are exactly its descendants.
+  for (int s = 0; s < nsuper; ++s) {
+    const int first = s - size[static_cast<size_t>(s)] + 1;
+    for (int c : children[static_cast<size_t>(s)]) {
+      if (c - size[static_cast<size_t>(c)] + 1 < first) return plan;
+    }
+  }
+  // Open the largest subtree (its root to the top, its children to the candidates) while that lowers the estimated
+  // time of a solve: the larger bin (largest subtrees first, each to the lighter bin) plus the top's diagonal
+  // blocks and half its rows below. Deterministic: ties go to the lower supernode.
+  std::vector<int> candidates = roots, top;
+  long top_diagonal = 0, top_below = 0;
+  auto deal = [&](const std::vector<int>& subtrees, std::vector<int> bins[2], long load[2]) {
+    std::vector<int> order = subtrees;
+    std::sort(order.begin(), order.end(), [&](int a, int b) {
+      return work[static_cast<size_t>(a)] != work[static_cast<size_t>(b)]
+                 ? work[static_cast<size_t>(a)] > work[static_cast<size_t>(b)]
+                 : a < b;
+    });
+    load[0] = load[1] = 0;
+    for (int c : order) {
+      const int bin = load[1] < load[0] ? 1 : 0;
+      load[bin] += work[static_cast<size_t>(c)];
+      bins[bin].push_back(c);
+    }
+  };
+  double best = static_cast<double>(plan.entries);  // one thread
+  std::vector<int> best_top, best_candidates;
+  for (int round = 0; round < 4096 && !candidates.empty(); ++round) {
+    if (static_cast<double>(top_diagonal) + 0.5 * top_below >= best) break;  // opening more only adds to the top
+    std::vector<int> bins[2];
+    long load[2];
+    deal(candidates, bins, load);
+    const double estimate =
+        static_cast<double>(std::max(load[0], load[1])) + static_cast<double>(top_diagonal) + 0.5 * top_below;
+    if (!bins[1].empty() && estimate < best) {
+      best = estimate;
+      best_top = top;
+      best_candidates = candidates;
+    }
+    const auto largest = std::min_element(candidates.begin(), candidates.end(), [&](int a, int b) {
+      return work[static_cast<size_t>(a)] != work[static_cast<size_t>(b)]
+                 ? work[static_cast<size_t>(a)] > work[static_cast<size_t>(b)]
+                 : a < b;
+    });
+    const int open = *largest;
+    candidates.erase(largest);
+    top.push_back(open);
+    const long nscol = factor.super[open + 1] - factor.super[open];
+    top_diagonal += nscol * (nscol + 1) / 2;
+    top_below += NodeEntries(factor, open) - nscol * (nscol + 1) / 2;
+    for (int c : children[static_cast<size_t>(open)]) candidates.push_back(c);
+  }
+  if (best_candidates.empty()) return plan;
+  plan.parallel = true;
+  plan.top = best_top;
+  std::sort(plan.top.begin(), plan.top.end());
+  std::vector<int> bins[2];
+  long load[2];
+  deal(best_candidates, bins, load);
+  for (int b = 0; b < 2; ++b) {
+    std::sort(bins[b].begin(), bins[b].end());
+    for (int c : bins[b]) plan.bins[b].push_back({c - size[static_cast<size_t>(c)] + 1, c + 1});
+    plan.bin_entries[b] = load[b];
+  }
+  plan.top_row.assign(static_cast<size_t>(n), 0);
+  for (int s : plan.top) {
+    plan.top_entries += NodeEntries(factor, s);
+    for (int k = factor.super[s]; k < factor.super[s + 1]; ++k) {
+      plan.top_row[static_cast<size_t>(k)] = 1;
+      plan.top_rows.push_back(k);
+    }
+  }
+  return plan;
+}
+
+void SolveWorkspace::Fit(const SupernodalFactor& factor, int max_below) {
+  const size_t n = static_cast<size_t>(factor.n);
+  const size_t rows = static_cast<size_t>(std::max(max_below, 1));
+  const size_t columns = static_cast<size_t>(MaxSupernodeColumns(factor));
+  y.resize(n);
+  for (int b = 0; b < 2; ++b) {
+    w[b].resize(rows);
+    t[b].resize(columns);
+    acc[b].resize(n);
+  }
+}
+
+void RoundedSupernodalSolve(const SupernodalFactor& factor, const SolveSchedule* schedule, const double* b,
+                            double* x, SolveWorkspace* workspace, KernelIsa isa) {
+  const Kernels& k = KernelsFor(isa);
+  const int n = factor.n;
+  double* y = workspace->y.data();
+  double* w0 = workspace->w[0].data();
+  double* t0 = workspace->t[0].data();
+  for (int i = 0; i < n; ++i) y[i] = b[factor.perm[i]];
+  if (schedule == nullptr || !schedule->parallel) {
+    k.forward_range(factor, 0, factor.nsuper, y, w0, nullptr, nullptr);
+    k.backward_range(factor, 0, factor.nsuper, y, w0, t0);
+  } else {
+    // Forward: the two bins at once, their updates to the top's rows summed apart; then the top.
+    double* acc[2] = {workspace->acc[0].data(), workspace->acc[1].data()};
+    for (int row : schedule->top_rows) acc[0][row] = acc[1][row] = 0.0;
+    const char* top_row = schedule->top_row.data();
+    auto forward_bin = [&](int bin) {
+      for (const auto& [first, end] : schedule->bins[bin]) {
+        k.forward_range(factor, first, end, y, workspace->w[bin].data(), top_row, acc[bin]);
+      }
+    };
+    tbb::parallel_invoke([&] { forward_bin(0); }, [&] { forward_bin(1); });
+    for (int row : schedule->top_rows) y[row] = (y[row] - acc[0][row]) - acc[1][row];
+    for (int s : schedule->top) ForwardTop(k, factor, s, y, w0);
+    // Backward: the top, then the two bins at once (each reads the top's rows and writes its own).
+    for (auto s = schedule->top.rbegin(); s != schedule->top.rend(); ++s) BackwardTop(k, factor, *s, y, w0, t0);
+    auto backward_bin = [&](int bin) {
+      const auto& ranges = schedule->bins[bin];
+      for (auto range = ranges.rbegin(); range != ranges.rend(); ++range) {
+        k.backward_range(factor, range->first, range->second, y, workspace->w[bin].data(),
+                         workspace->t[bin].data());
+      }
+    };
+    tbb::parallel_invoke([&] { backward_bin(0); }, [&] { backward_bin(1); });
+  }
+  for (int i = 0; i < n; ++i) x[factor.perm[i]] = y[i];
 }
 
 }  // namespace springblend::internal

@@ -7,6 +7,7 @@
 #include <Eigen/SparseCholesky>
 #include <algorithm>
 #include <cstring>
+#include <memory>
 #include <mutex>
 #include <string>
 #include <vector>
@@ -58,6 +59,7 @@ class CholmodCholesky final : public SparseCholesky {
     cholmod_sparse a = View(nullptr);
     if (factor_ != nullptr) cholmod_free_factor(&factor_, &common_);
     factor_ = cholmod_analyze(&a, &common_);
+    schedule_.reset();
     if (factor_ == nullptr || common_.status < CHOLMOD_OK) {
       throw Error(ErrorCode::kNumerical,
                   "CHOLMOD could not analyse the Hessian pattern (status " +
@@ -72,6 +74,7 @@ class CholmodCholesky final : public SparseCholesky {
     auto copy = std::make_unique<CholmodCholesky>(round_);
     copy->pattern_ = pattern_;
     copy->solves_per_factorization_ = solves_per_factorization_;
+    copy->schedule_ = schedule_;
     // The analysed factor is only read here, so clones may be made concurrently from one rig.
     copy->factor_ = cholmod_copy_factor(factor_, &copy->common_);
     if (copy->factor_ == nullptr) throw Error(ErrorCode::kInternal, "cholmod_copy_factor failed");
@@ -97,17 +100,7 @@ class CholmodCholesky final : public SparseCholesky {
       Solve(b, x);
       return;
     }
-    SupernodalFactor view;
-    view.n = pattern_->n;
-    view.nsuper = static_cast<int>(factor_->nsuper);
-    view.perm = static_cast<const int*>(factor_->Perm);
-    view.super = static_cast<const int*>(factor_->super);
-    view.pi = static_cast<const int*>(factor_->pi);
-    view.px = static_cast<const int*>(factor_->px);
-    view.rows = static_cast<const int*>(factor_->s);
-    view.values = rounded_.data();
-    y_.resize(view.n);
-    RoundedSupernodalSolve(view, b, x, y_.data(), w_.data(), t_.data());
+    RoundedSupernodalSolve(RoundedView(), schedule_.get(), b, x, &workspace_);
   }
 
   void Solve(const double* b, double* x) override {
@@ -143,11 +136,23 @@ class CholmodCholesky final : public SparseCholesky {
     const double* values = static_cast<const double*>(factor_->x);
     rounded_.resize(factor_->xsize);
     for (size_t k = 0; k < factor_->xsize; ++k) rounded_[k] = static_cast<float>(values[k]);
-    w_.resize(std::max<size_t>(factor_->maxesize, 1));
+    const SupernodalFactor view = RoundedView();
+    workspace_.Fit(view, static_cast<int>(factor_->maxesize));
+    // How two threads share a solve: from the analysed structure, once (clones share it).
+    if (schedule_ == nullptr) schedule_ = std::make_shared<const SolveSchedule>(PlanSolve(view));
+  }
+
+  SupernodalFactor RoundedView() const {
     SupernodalFactor view;
+    view.n = pattern_->n;
     view.nsuper = static_cast<int>(factor_->nsuper);
+    view.perm = static_cast<const int*>(factor_->Perm);
     view.super = static_cast<const int*>(factor_->super);
-    t_.resize(MaxSupernodeColumns(view));
+    view.pi = static_cast<const int*>(factor_->pi);
+    view.px = static_cast<const int*>(factor_->px);
+    view.rows = static_cast<const int*>(factor_->s);
+    view.values = rounded_.data();
+    return view;
   }
 
   // Mutable because lnz is read from it after analysis.
@@ -155,7 +160,8 @@ class CholmodCholesky final : public SparseCholesky {
   const SymmetricPattern* pattern_ = nullptr;
   bool round_ = true;
   std::vector<float> rounded_;
-  std::vector<double> y_, w_, t_;
+  SolveWorkspace workspace_;
+  std::shared_ptr<const SolveSchedule> schedule_;
   cholmod_factor* factor_ = nullptr;
   double solves_per_factorization_ = 1.0;
   cholmod_dense* solution_ = nullptr;

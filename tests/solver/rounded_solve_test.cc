@@ -1,9 +1,11 @@
 // The preconditioner's triangular solves with a CHOLMOD supernodal factor rounded to single precision: close to
-// CHOLMOD's own solve, and the same to the bit whichever instruction set's kernel runs.
+// CHOLMOD's own solve, and the same to the bit whichever instruction set's kernel runs and however many threads share
+// it.
 #include "rounded_solve.h"
 
 #include <cholmod.h>
 #include <gtest/gtest.h>
+#include <tbb/task_arena.h>
 
 #include <Eigen/Core>
 #include <cmath>
@@ -79,9 +81,8 @@ class GridFactor {
     view_.px = static_cast<const int*>(factor_->px);
     view_.rows = static_cast<const int*>(factor_->s);
     view_.values = floats_.data();
-    y_.resize(m.n);
-    w_.resize(std::max<size_t>(factor_->maxesize, 1));
-    t_.resize(MaxSupernodeColumns(view_));
+    workspace_.Fit(view_, static_cast<int>(factor_->maxesize));
+    schedule_ = PlanSolve(view_);
   }
   ~GridFactor() {
     cholmod_free_factor(&factor_, &common_);
@@ -92,6 +93,7 @@ class GridFactor {
 
   int n() const { return view_.n; }
   int widest() const { return MaxSupernodeColumns(view_); }
+  int nsuper() const { return view_.nsuper; }
   Eigen::VectorXd Exact(const Eigen::VectorXd& b) {
     cholmod_dense rhs{};
     rhs.nrow = rhs.nzmax = rhs.d = n();
@@ -104,11 +106,13 @@ class GridFactor {
     cholmod_free_dense(&x, &common_);
     return out;
   }
-  Eigen::VectorXd Single(const Eigen::VectorXd& b, KernelIsa isa) {
+  // With the schedule (shared between the threads of the caller's arena) or in one thread.
+  Eigen::VectorXd Single(const Eigen::VectorXd& b, KernelIsa isa, bool scheduled = true) {
     Eigen::VectorXd x(n());
-    RoundedSupernodalSolve(view_, b.data(), x.data(), y_.data(), w_.data(), t_.data(), isa);
+    RoundedSupernodalSolve(view_, scheduled ? &schedule_ : nullptr, b.data(), x.data(), &workspace_, isa);
     return x;
   }
+  const SolveSchedule& schedule() const { return schedule_; }
 
  private:
   HessianPattern pattern_;
@@ -117,7 +121,8 @@ class GridFactor {
   cholmod_factor* factor_ = nullptr;
   std::vector<float> floats_;
   SupernodalFactor view_;
-  std::vector<double> y_, w_, t_;
+  SolveWorkspace workspace_;
+  SolveSchedule schedule_;
 };
 
 TEST(RoundedSolve, ASinglePrecisionFactorSolvesCloseToTheDoubleFactor) {
@@ -125,10 +130,12 @@ TEST(RoundedSolve, ASinglePrecisionFactorSolvesCloseToTheDoubleFactor) {
   ASSERT_GT(grid.widest(), 8);  // supernodes wide enough for the kernels' four-column and eight-lane paths
   const Eigen::VectorXd b = Eigen::VectorXd::LinSpaced(grid.n(), -1.0, 2.0).array().cos().matrix();
   const Eigen::VectorXd exact = grid.Exact(b);
-  const Eigen::VectorXd single = grid.Single(b, BestKernelIsa());
-  // A float keeps 24 significant bits: the factor's rounding, times the (small) condition of this system.
-  EXPECT_LT((single - exact).norm(), 1e-6 * exact.norm());
-  EXPECT_GT((single - exact).norm(), 0.0);  // the rounded factor is what was read
+  for (const bool scheduled : {false, true}) {
+    const Eigen::VectorXd single = grid.Single(b, BestKernelIsa(), scheduled);
+    // A float keeps 24 significant bits: the factor's rounding, times the (small) condition of this system.
+    EXPECT_LT((single - exact).norm(), 1e-6 * exact.norm()) << "scheduled " << scheduled;
+    EXPECT_GT((single - exact).norm(), 0.0);  // the rounded factor is what was read
+  }
 }
 
 TEST(RoundedSolve, EveryInstructionSetGivesTheSameBits) {
@@ -142,6 +149,40 @@ TEST(RoundedSolve, EveryInstructionSetGivesTheSameBits) {
       ASSERT_EQ(s[i], single[i]) << "single, isa " << static_cast<int>(isa) << ", entry " << i;
     }
   }
+}
+
+// The schedule comes from the factor's structure alone: two threads, one thread, and any instruction set give the
+// same bits, and the tree's top and its two bins together cover every supernode once.
+TEST(RoundedSolve, TwoThreadsGiveTheSameBitsAsOne) {
+  GridFactor grid(40);
+  const SolveSchedule& plan = grid.schedule();
+  ASSERT_TRUE(plan.parallel);
+  EXPECT_GT(plan.bin_entries[0], 0);
+  EXPECT_GT(plan.bin_entries[1], 0);
+  EXPECT_EQ(plan.top_entries + plan.bin_entries[0] + plan.bin_entries[1], plan.entries);
+  std::vector<int> seen(static_cast<size_t>(grid.nsuper()), 0);
+  for (int s : plan.top) ++seen[static_cast<size_t>(s)];
+  for (const auto& bin : plan.bins) {
+    for (const auto& [first, end] : bin) {
+      for (int s = first; s < end; ++s) ++seen[static_cast<size_t>(s)];
+    }
+  }
+  for (int s = 0; s < grid.nsuper(); ++s) ASSERT_EQ(seen[static_cast<size_t>(s)], 1) << "supernode " << s;
+  // Some of the top's supernodes are wide enough to be split between the threads.
+  EXPECT_GT(grid.widest(), 16);
+
+  const Eigen::VectorXd b = Eigen::VectorXd::LinSpaced(grid.n(), -2.0, 7.0).array().sin().matrix();
+  Eigen::VectorXd one, two;
+  tbb::task_arena(1).execute([&] { one = grid.Single(b, KernelIsa::kGeneric); });
+  for (int round = 0; round < 3; ++round) {
+    for (const KernelIsa isa : {KernelIsa::kGeneric, KernelIsa::kAvx2, KernelIsa::kAvx512}) {
+      tbb::task_arena(2).execute([&] { two = grid.Single(b, isa); });
+      for (int i = 0; i < grid.n(); ++i) ASSERT_EQ(two[i], one[i]) << "round " << round << ", entry " << i;
+    }
+  }
+  // Summing the bins' updates apart changes the rounding only: the sequential solve is within a float's.
+  const Eigen::VectorXd sequential = grid.Single(b, KernelIsa::kGeneric, false);
+  EXPECT_LT((one - sequential).norm(), 1e-12 * sequential.norm());
 }
 
 }  // namespace
