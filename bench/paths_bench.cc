@@ -283,8 +283,8 @@ int main(int argc, char** argv) {
       ->check(CLI::Range(4, 1024));
   app.add_option("--path-tolerance", settings.rig.path_tolerance, "certified midpoint error, of the diagonal");
   std::string linear_solver = ToString(settings.rig.linear_solver);
-  app.add_option("--linear-solver", linear_solver, "sparse Cholesky backend: cholmod, cholmod-double, mumps or eigen")
-      ->check(CLI::IsMember({"cholmod", "cholmod-double", "mumps", "eigen"}));
+  app.add_option("--linear-solver", linear_solver, "sparse Cholesky backend: cholmod, cholmod-double, cholmod-library (CHOLMOD's own factorization), mumps or eigen")
+      ->check(CLI::IsMember({"cholmod", "cholmod-double", "cholmod-library", "mumps", "eigen"}));
   CLI11_PARSE(app, argc, argv);
   settings.rig.linear_solver = springblend::LinearSolverTypeFromString(linear_solver);
   if (settings.shared.empty()) settings.shared = settings.repo / ".." / "shared" / "meshes";

@@ -1037,8 +1037,8 @@ int Main(int argc, char** argv) {
                  "curvature the conjugate gradients meet) in every configuration")
       ->check(CLI::IsMember({"on", "off"}));
   std::string linear_solver = ToString(g_linear_solver);
-  app.add_option("--linear-solver", linear_solver, "sparse Cholesky backend: cholmod, cholmod-double, mumps or eigen")
-      ->check(CLI::IsMember({"cholmod", "cholmod-double", "mumps", "eigen"}));
+  app.add_option("--linear-solver", linear_solver, "sparse Cholesky backend: cholmod, cholmod-double, cholmod-library (CHOLMOD's own factorization), mumps or eigen")
+      ->check(CLI::IsMember({"cholmod", "cholmod-double", "cholmod-library", "mumps", "eigen"}));
   try {
     app.parse(argc, argv);
   } catch (const CLI::ParseError& e) {

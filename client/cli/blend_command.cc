@@ -253,7 +253,7 @@ Runner AddBlendCommand(CLI::App& app) {
                   "stiffness of bending springs relative to structure springs");
   cmd->add_option("--tolerance", args->tolerance, "residual tolerance (largest force, strain units)");
   cmd->add_option("--max-iterations", args->max_iterations, "Newton iterations per frame");
-  cmd->add_option("--solver", args->solver, "sparse Cholesky backend: cholmod (default; preconditions with its factor in single precision), cholmod-double, mumps (single precision) or eigen");
+  cmd->add_option("--solver", args->solver, "sparse Cholesky backend: cholmod (default; preconditions with its factor in single precision), cholmod-double, cholmod-library (CHOLMOD's own factorization, one thread), mumps (single precision) or eigen");
   cmd->add_option("--method", args->method, "equilibrium method: newton (default), newton-laplacian or lbfgs");
   cmd->add_option("--hessian", args->hessian,
                   "true (true Hessian, projected when not positive definite) or projected");

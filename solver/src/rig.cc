@@ -36,6 +36,7 @@ const char* ToString(LinearSolverType type) {
   switch (type) {
     case LinearSolverType::kCholmodSupernodal: return "cholmod";
     case LinearSolverType::kCholmodDouble: return "cholmod-double";
+    case LinearSolverType::kCholmodLibrary: return "cholmod-library";
     case LinearSolverType::kEigenSimplicial: return "eigen";
     case LinearSolverType::kMumpsSingle: return "mumps";
   }
@@ -45,9 +46,10 @@ const char* ToString(LinearSolverType type) {
 LinearSolverType LinearSolverTypeFromString(const std::string& name) {
   if (name == "cholmod") return LinearSolverType::kCholmodSupernodal;
   if (name == "cholmod-double") return LinearSolverType::kCholmodDouble;
+  if (name == "cholmod-library") return LinearSolverType::kCholmodLibrary;
   if (name == "eigen") return LinearSolverType::kEigenSimplicial;
   if (name == "mumps") return LinearSolverType::kMumpsSingle;
-  throw Error(ErrorCode::kInvalidInput, "unknown linear solver '" + name + "' (use cholmod, cholmod-double, mumps or eigen)");
+  throw Error(ErrorCode::kInvalidInput, "unknown linear solver '" + name + "' (use cholmod, cholmod-double, cholmod-library, mumps or eigen)");
 }
 
 const char* ToString(BoundaryMode mode) {

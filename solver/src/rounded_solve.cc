@@ -6,6 +6,8 @@
 
 #include <tbb/parallel_invoke.h>
 
+#include "supernodal_tree.h"
+
 // Every sum has a fixed order: eight lanes (GCC's generic vectors, which the compiler splits into what the machine
 // has) summed pairwise at the end, then the tail. The kernels are compiled for AVX-512, AVX2 and plain x86-64 (the
 // best the machine has is used), with floating-point contraction off (solver/CMakeLists.txt), so each does the same
@@ -295,108 +297,26 @@ int MaxSupernodeColumns(const SupernodalFactor& factor) {
 
 SolveSchedule PlanSolve(const SupernodalFactor& factor) {
   SolveSchedule plan;
-  const int nsuper = factor.nsuper, n = factor.n;
-  std::vector<int> node_of(static_cast<size_t>(n), -1);
-  for (int s = 0; s < nsuper; ++s) {
-    for (int k = factor.super[s]; k < factor.super[s + 1]; ++k) node_of[static_cast<size_t>(k)] = s;
+  // Work: the entries a supernode's solve reads; at the top its rows below are split between the threads.
+  std::vector<double> own(static_cast<size_t>(factor.nsuper)), shared(static_cast<size_t>(factor.nsuper));
+  for (int s = 0; s < factor.nsuper; ++s) {
+    const long nscol = factor.super[s + 1] - factor.super[s];
+    const long diagonal = nscol * (nscol + 1) / 2;
+    own[static_cast<size_t>(s)] = static_cast<double>(NodeEntries(factor, s));
+    shared[static_cast<size_t>(s)] = static_cast<double>(diagonal) + 0.5 * static_cast<double>(NodeEntries(factor, s) - diagonal);
     plan.entries += NodeEntries(factor, s);
   }
-  // The supernodal elimination tree: a supernode's parent holds its first row below the diagonal block. Subtrees
-  // must be ranges of supernodes (postorder, CHOLMOD's default), else the solve stays sequential.
-  std::vector<int> parent(static_cast<size_t>(nsuper), -1), size(static_cast<size_t>(nsuper), 1);
-  std::vector<long> work(static_cast<size_t>(nsuper), 0);
-  std::vector<std::vector<int>> children(static_cast<size_t>(nsuper));
-  std::vector<int> roots;
-  for (int s = 0; s < nsuper; ++s) {
-    const int nscol = factor.super[s + 1] - factor.super[s];
-    const int first_below = factor.pi[s] + nscol, end = factor.pi[s + 1];
-    int p = -1;
-    for (int k = first_below; k < end; ++k) {
-      const int node = node_of[static_cast<size_t>(factor.rows[k])];
-      if (p < 0 || node < p) p = node;
-    }
-    if (p >= 0 && p <= s) return plan;  // not postordered
-    parent[static_cast<size_t>(s)] = p;
-  }
-  for (int s = 0; s < nsuper; ++s) {
-    work[static_cast<size_t>(s)] += NodeEntries(factor, s);
-    const int p = parent[static_cast<size_t>(s)];
-    if (p < 0) {
-      roots.push_back(s);
-      continue;
-    }
-    work[static_cast<size_t>(p)] += work[static_cast<size_t>(s)];
-    size[static_cast<size_t>(p)] += size[static_cast<size_t>(s)];
-    children[static_cast<size_t>(p)].push_back(s);
-  }
-  // Subtree s is [s - size + 1, s]: check that its nodes are exactly its descendants.
-  for (int s = 0; s < nsuper; ++s) {
-    const int first = s - size[static_cast<size_t>(s)] + 1;
-    for (int c : children[static_cast<size_t>(s)]) {
-      if (c - size[static_cast<size_t>(c)] + 1 < first) return plan;
-    }
-  }
-  // Open the largest subtree (its root to the top, its children to the candidates) while that lowers the estimated
-  // time of a solve: the larger bin (largest subtrees first, each to the lighter bin) plus the top's diagonal
-  // blocks and half its rows below. Deterministic: ties go to the lower supernode.
-  std::vector<int> candidates = roots, top;
-  long top_diagonal = 0, top_below = 0;
-  auto deal = [&](const std::vector<int>& subtrees, std::vector<int> bins[2], long load[2]) {
-    std::vector<int> order = subtrees;
-    std::sort(order.begin(), order.end(), [&](int a, int b) {
-      return work[static_cast<size_t>(a)] != work[static_cast<size_t>(b)]
-                 ? work[static_cast<size_t>(a)] > work[static_cast<size_t>(b)]
-                 : a < b;
-    });
-    load[0] = load[1] = 0;
-    for (int c : order) {
-      const int bin = load[1] < load[0] ? 1 : 0;
-      load[bin] += work[static_cast<size_t>(c)];
-      bins[bin].push_back(c);
-    }
-  };
-  double best = static_cast<double>(plan.entries);  // one thread
-  std::vector<int> best_top, best_candidates;
-  for (int round = 0; round < 4096 && !candidates.empty(); ++round) {
-    if (static_cast<double>(top_diagonal) + 0.5 * top_below >= best) break;  // opening more only adds to the top
-    std::vector<int> bins[2];
-    long load[2];
-    deal(candidates, bins, load);
-    const double estimate =
-        static_cast<double>(std::max(load[0], load[1])) + static_cast<double>(top_diagonal) + 0.5 * top_below;
-    if (!bins[1].empty() && estimate < best) {
-      best = estimate;
-      best_top = top;
-      best_candidates = candidates;
-    }
-    const auto largest = std::min_element(candidates.begin(), candidates.end(), [&](int a, int b) {
-      return work[static_cast<size_t>(a)] != work[static_cast<size_t>(b)]
-                 ? work[static_cast<size_t>(a)] > work[static_cast<size_t>(b)]
-                 : a < b;
-    });
-    const int open = *largest;
-    candidates.erase(largest);
-    top.push_back(open);
-    const long nscol = factor.super[open + 1] - factor.super[open];
-    top_diagonal += nscol * (nscol + 1) / 2;
-    top_below += NodeEntries(factor, open) - nscol * (nscol + 1) / 2;
-    for (int c : children[static_cast<size_t>(open)]) candidates.push_back(c);
-  }
-  if (best_candidates.empty()) return plan;
+  TreeSplit split = SplitTree(factor, own, shared);
+  if (!split.parallel) return plan;
   plan.parallel = true;
-  plan.top = best_top;
-  std::sort(plan.top.begin(), plan.top.end());
-  std::vector<int> bins[2];
-  long load[2];
-  deal(best_candidates, bins, load);
+  plan.top = std::move(split.top);
   for (int b = 0; b < 2; ++b) {
-    std::sort(bins[b].begin(), bins[b].end());
-    for (int c : bins[b]) plan.bins[b].push_back({c - size[static_cast<size_t>(c)] + 1, c + 1});
-    plan.bin_entries[b] = load[b];
+    plan.bins[b] = std::move(split.bins[b]);
+    plan.bin_entries[b] = static_cast<long>(split.bin_work[b]);
   }
-  plan.top_row.assign(static_cast<size_t>(n), 0);
+  plan.top_entries = static_cast<long>(split.top_work);
+  plan.top_row.assign(static_cast<size_t>(factor.n), 0);
   for (int s : plan.top) {
-    plan.top_entries += NodeEntries(factor, s);
     for (int k = factor.super[s]; k < factor.super[s + 1]; ++k) {
       plan.top_row[static_cast<size_t>(k)] = 1;
       plan.top_rows.push_back(k);

@@ -8,10 +8,14 @@
 #include <tbb/task_arena.h>
 
 #include <Eigen/Core>
+#include <algorithm>
 #include <cmath>
+#include <memory>
 #include <vector>
 
 #include "hessian_pattern.h"
+#include "sparse_cholesky.h"
+#include "tree_cholesky.h"
 
 namespace springblend::internal {
 namespace {
@@ -113,6 +117,16 @@ class GridFactor {
     return x;
   }
   const SolveSchedule& schedule() const { return schedule_; }
+  const SymmetricPattern& pattern() const { return pattern_.matrix; }
+  const std::vector<double>& values() const { return values_; }
+  SupernodalFactor structure() const {
+    SupernodalFactor s = view_;
+    s.values = nullptr;
+    return s;
+  }
+  // CHOLMOD's own double factor.
+  const double* cholmod_entries() const { return static_cast<const double*>(factor_->x); }
+  size_t entries() const { return factor_->xsize; }
 
  private:
   HessianPattern pattern_;
@@ -183,6 +197,85 @@ TEST(RoundedSolve, TwoThreadsGiveTheSameBitsAsOne) {
   // Summing the bins' updates apart changes the rounding only: the sequential solve is within a float's.
   const Eigen::VectorXd sequential = grid.Single(b, KernelIsa::kGeneric, false);
   EXPECT_LT((one - sequential).norm(), 1e-12 * sequential.norm());
+}
+
+// The numeric factorization shared by two threads along the tree: CHOLMOD's factor to rounding, the same bits with
+// one thread or two, and a negative pivot found in a bin's subtree or at the top.
+TEST(TreeCholesky, FactorsAsCholmodWithTheSameBitsOnOneThreadOrTwo) {
+  GridFactor grid(40);
+  const std::shared_ptr<const TreeCholesky> tree = TreeCholesky::Plan(grid.structure(), grid.pattern());
+  ASSERT_NE(tree, nullptr);
+  ASSERT_TRUE(tree->split().parallel);
+  EXPECT_GT(tree->split().bin_work[0], 0.0);
+  EXPECT_GT(tree->split().bin_work[1], 0.0);
+  std::vector<double> one(grid.entries()), two(grid.entries());
+  TreeCholesky::Workspace workspace;
+  tbb::task_arena(1).execute([&] { ASSERT_TRUE(tree->Factorize(grid.structure(), grid.values().data(), one.data(), &workspace)); });
+  const double* reference = grid.cholmod_entries();
+  double largest = 0.0, off = 0.0;
+  for (size_t k = 0; k < one.size(); ++k) {
+    largest = std::max(largest, std::abs(reference[k]));
+    off = std::max(off, std::abs(one[k] - reference[k]));
+  }
+  EXPECT_GT(largest, 0.0);
+  EXPECT_LT(off, 1e-12 * largest);
+  for (int round = 0; round < 3; ++round) {
+    std::fill(two.begin(), two.end(), -1.0);
+    tbb::task_arena(2).execute([&] { ASSERT_TRUE(tree->Factorize(grid.structure(), grid.values().data(), two.data(), &workspace)); });
+    for (size_t k = 0; k < one.size(); ++k) ASSERT_EQ(two[k], one[k]) << "round " << round << ", entry " << k;
+  }
+}
+
+TEST(TreeCholesky, FindsANegativePivotInABinAndAtTheTop) {
+  GridFactor grid(40);
+  const SupernodalFactor structure = grid.structure();
+  const std::shared_ptr<const TreeCholesky> tree = TreeCholesky::Plan(structure, grid.pattern());
+  ASSERT_NE(tree, nullptr);
+  const TreeSplit& split = tree->split();
+  ASSERT_FALSE(split.top.empty());
+  ASSERT_FALSE(split.bins[1].empty());
+  // A column of the factor in the second bin's first subtree, and the top's last one.
+  const int in_bin = structure.super[split.bins[1].front().first];
+  const int at_top = structure.super[split.top.back() + 1] - 1;
+  const SymmetricPattern& pattern = grid.pattern();
+  std::vector<double> lx(grid.entries());
+  TreeCholesky::Workspace workspace;
+  for (const int column : {in_bin, at_top}) {
+    std::vector<double> values = grid.values();
+    const int j = structure.perm[column];  // A's column
+    for (int k = pattern.column_starts[j]; k < pattern.column_starts[j + 1]; ++k) {
+      if (pattern.row_indices[k] == j) values[k] = -values[k];
+    }
+    EXPECT_FALSE(tree->Factorize(structure, values.data(), lx.data(), &workspace)) << "column " << column;
+  }
+  EXPECT_TRUE(tree->Factorize(structure, grid.values().data(), lx.data(), &workspace));
+}
+
+// The production backend factors with it: its solves match CHOLMOD's own factor's, a clone gives the same bits, and
+// an indefinite matrix is reported so.
+TEST(TreeCholesky, TheCholmodBackendSolvesWithItAndItsClones) {
+  GridFactor grid(40);
+  std::unique_ptr<SparseCholesky> backend = SparseCholesky::Create(LinearSolverType::kCholmodSupernodal);
+  backend->Analyze(grid.pattern());
+  std::unique_ptr<SparseCholesky> clone = backend->Clone();
+  ASSERT_EQ(backend->Factorize(grid.values().data()), FactorStatus::kOk);
+  ASSERT_EQ(clone->Factorize(grid.values().data()), FactorStatus::kOk);
+  const Eigen::VectorXd b = Eigen::VectorXd::LinSpaced(grid.n(), 1.0, -4.0).array().cos().matrix();
+  const Eigen::VectorXd exact = grid.Exact(b);
+  Eigen::VectorXd x(grid.n()), y(grid.n());
+  backend->Solve(b.data(), x.data());
+  clone->Solve(b.data(), y.data());
+  EXPECT_LT((x - exact).norm(), 1e-12 * exact.norm());
+  for (int i = 0; i < grid.n(); ++i) ASSERT_EQ(x[i], y[i]) << "entry " << i;
+  std::vector<double> values = grid.values();
+  const SymmetricPattern& pattern = grid.pattern();
+  for (int k = pattern.column_starts[7]; k < pattern.column_starts[8]; ++k) {
+    if (pattern.row_indices[k] == 7) values[k] = -1e6;
+  }
+  EXPECT_EQ(backend->Factorize(values.data()), FactorStatus::kNotPositiveDefinite);
+  ASSERT_EQ(backend->Factorize(grid.values().data()), FactorStatus::kOk);
+  backend->Solve(b.data(), y.data());
+  for (int i = 0; i < grid.n(); ++i) ASSERT_EQ(x[i], y[i]) << "entry " << i;
 }
 
 }  // namespace

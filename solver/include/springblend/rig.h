@@ -32,9 +32,11 @@ enum class LinearSolverType {
   kCholmodDouble,      // the same, preconditioning with the double factor: the baseline the benchmark compares
   kEigenSimplicial,    // Eigen's SimplicialLLT: a slow reference, kept for cross-checks
   kMumpsSingle,        // MUMPS in single precision, as a step and preconditioner: measured slower here
+  kCholmodLibrary,     // kCholmodSupernodal with CHOLMOD's own numeric factorization (one thread) instead of the
+                       // tree-parallel one on its analysis: the baseline the benchmark compares
 };
 const char* ToString(LinearSolverType type);
-LinearSolverType LinearSolverTypeFromString(const std::string& name);  // "cholmod" | "cholmod-double" | "eigen" | "mumps"
+LinearSolverType LinearSolverTypeFromString(const std::string& name);  // "cholmod" | "cholmod-double" | "cholmod-library" | "eigen" | "mumps"
 
 struct RigOptions {
   // Vertices whose position differs by at most this fraction of the rest shape's bounding-box diagonal
