@@ -53,7 +53,7 @@ std::shared_ptr<const TreeCholesky> TreeCholesky::Plan(const SupernodalFactor& s
   std::vector<int> pinv(static_cast<size_t>(n));
   for (int k = 0; k < n; ++k) pinv[static_cast<size_t>(structure.perm[k])] = k;
   const int entries = pattern.column_starts[static_cast<size_t>(n)];
-  std::vector<int> entry_node(static_cast<size_t>(entries));
+  std::vector<int> entry_node(static_cast<size_t>(entries)), column_of(static_cast<size_t>(entries));
   t.a_start_.assign(static_cast<size_t>(nsuper) + 1, 0);
   for (int j = 0; j < n; ++j) {
     for (int k = pattern.column_starts[static_cast<size_t>(j)]; k < pattern.column_starts[static_cast<size_t>(j) + 1];
@@ -62,6 +62,7 @@ std::shared_ptr<const TreeCholesky> TreeCholesky::Plan(const SupernodalFactor& s
       const int b = pinv[static_cast<size_t>(j)];
       const int s = node_of[static_cast<size_t>(std::min(a, b))];
       entry_node[static_cast<size_t>(k)] = s;
+      column_of[static_cast<size_t>(k)] = j;
       ++t.a_start_[static_cast<size_t>(s) + 1];
     }
   }
@@ -71,13 +72,6 @@ std::shared_ptr<const TreeCholesky> TreeCholesky::Plan(const SupernodalFactor& s
   {
     std::vector<long> next(t.a_start_.begin(), t.a_start_.end() - 1);
     for (int k = 0; k < entries; ++k) t.a_src_[static_cast<size_t>(next[static_cast<size_t>(entry_node[static_cast<size_t>(k)])]++)] = k;
-  }
-  std::vector<int> column_of(static_cast<size_t>(entries));
-  for (int j = 0; j < n; ++j) {
-    for (int k = pattern.column_starts[static_cast<size_t>(j)]; k < pattern.column_starts[static_cast<size_t>(j) + 1];
-         ++k) {
-      column_of[static_cast<size_t>(k)] = j;
-    }
   }
   std::vector<int> map(static_cast<size_t>(n), -1);
   for (int s = 0; s < nsuper; ++s) {
