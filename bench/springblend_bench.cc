@@ -62,12 +62,15 @@ double MsSince(Clock::time_point start) {
 std::optional<double> g_residual_tolerance, g_step_tolerance;
 // --negative-curvature on|off: override SolveOptions::follow_negative_curvature (every configuration).
 std::optional<bool> g_follow_negative_curvature;
+// --mix-start scaled|summed: override SolveOptions::scale_mix_start (every configuration).
+std::optional<bool> g_scale_mix_start;
 // --linear-solver: the rigs' sparse Cholesky backend (RigOptions::linear_solver).
 LinearSolverType g_linear_solver = RigOptions{}.linear_solver;
 SolveOptions WithTolerances(SolveOptions options) {
   if (g_residual_tolerance) options.residual_tolerance = *g_residual_tolerance;
   if (g_step_tolerance) options.step_tolerance = *g_step_tolerance;
   if (g_follow_negative_curvature) options.follow_negative_curvature = *g_follow_negative_curvature;
+  if (g_scale_mix_start) options.scale_mix_start = *g_scale_mix_start;
   return options;
 }
 
@@ -736,8 +739,9 @@ std::string MarkdownReport(const Machine& machine, const Settings& settings, con
   std::string md = "# springblend-bench\n\n";
   md += fmt::format("machine: nproc {}, {}, date {}, git {}\n\n", machine.nproc, machine.cpu, machine.date,
                     machine.git);
-  md += fmt::format("options: follow_negative_curvature {}\n\n",
-                    WithTolerances(SolveOptions{}).follow_negative_curvature ? "on" : "off");
+  md += fmt::format("options: follow_negative_curvature {}, mix start {}\n\n",
+                    WithTolerances(SolveOptions{}).follow_negative_curvature ? "on" : "off",
+                    WithTolerances(SolveOptions{}).scale_mix_start ? "scaled" : "summed");
   md += fmt::format(
       "Frames: the paper's sweep, {} frames from the rest shape (frame 0) to the target; figures over frames "
       "1..{}. Every frame is stateless (starts from the rig's prediction for its weights). **alone**: each frame "
@@ -1036,6 +1040,11 @@ int Main(int argc, char** argv) {
                  "on|off: override SolveOptions::follow_negative_curvature (escaping saddles along the negative "
                  "curvature the conjugate gradients meet) in every configuration")
       ->check(CLI::IsMember({"on", "off"}));
+  std::string mix_start;
+  app.add_option("--mix-start", mix_start,
+                 "scaled|summed: override SolveOptions::scale_mix_start (a mix frame's start at the lowest energy on "
+                 "the ray through its targets' summed path corrections, or the full sum) in every configuration")
+      ->check(CLI::IsMember({"scaled", "summed"}));
   std::string linear_solver = ToString(g_linear_solver);
   app.add_option("--linear-solver", linear_solver, "sparse Cholesky backend: cholmod, cholmod-double, cholmod-library (CHOLMOD's own factorization), mumps or eigen")
       ->check(CLI::IsMember({"cholmod", "cholmod-double", "cholmod-library", "mumps", "eigen"}));
@@ -1046,6 +1055,7 @@ int Main(int argc, char** argv) {
   }
   g_linear_solver = LinearSolverTypeFromString(linear_solver);
   if (!negative_curvature.empty()) g_follow_negative_curvature = negative_curvature == "on";
+  if (!mix_start.empty()) g_scale_mix_start = mix_start == "scaled";
   if (settings.quick && steps->count() == 0) settings.steps = 6;
   if (settings.shared.empty()) settings.shared = settings.repo / ".." / "shared" / "meshes";
   if (settings.methods.empty()) {

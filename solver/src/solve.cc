@@ -205,6 +205,12 @@ SolveSummary Solver::Impl::Solve(const Frame& frame, Points* positions, const st
     summary.solve_ms = Elapsed(start);
     return summary;
   }
+  if (options_.use_target_paths && options_.scale_mix_start) {
+    Eigen::VectorXd base(x_.size());
+    for (Eigen::Index d = 0; d < x_.size(); ++d) base[d] = held_[d] ? x_[d] : linear(d / 3, d % 3);
+    summary.mix_start_scale = internal::ScaleMixStart(
+        rig.internals().paths, frame.weights, base, [&](const Eigen::VectorXd& y) { return springs_.Energy(y); }, &x_);
+  }
   {
     std::vector<int> vertices;
     for (const auto& h : conditions.held) vertices.push_back(h.first);
@@ -381,6 +387,21 @@ Points Solver::Start(const std::vector<double>& weights) const {
   }
   Eigen::VectorXd x;
   impl_->StartOf(linear, weights, motion, &x);
+  const SolveOptions& options = impl_->options_;
+  if (options.use_target_paths && options.scale_mix_start && !options.linear &&
+      internal::IsPathMix(rig.internals().paths, weights)) {
+    // The solve's walk along the corrections' ray, with every vertex free (the held ones are placed later).
+    internal::SpringSystem springs(internal::TopologyOf(rig));
+    springs.set_length_scale(rig.summary().mean_rest_length);
+    std::vector<double> rest_lengths;
+    internal::BlendRestLengths(rig, shape_weights, &rest_lengths);
+    springs.SetRestLengths(std::move(rest_lengths), rig.spring_kind(), internal::KindStiffness(rig.options()),
+                           internal::StiffnessFloor(rig));
+    Eigen::VectorXd base(x.size());
+    for (Eigen::Index d = 0; d < x.size(); ++d) base[d] = linear(d / 3, d % 3);
+    internal::ScaleMixStart(rig.internals().paths, weights, base,
+                            [&](const Eigen::VectorXd& y) { return springs.Energy(y); }, &x);
+  }
   Points start(rig.num_vertices(), 3);
   for (int v = 0; v < rig.num_vertices(); ++v) start.row(v) = x.segment<3>(3 * v).transpose();
   return start;

@@ -1110,6 +1110,43 @@ void AddPathCorrections(const std::vector<TargetPath>& paths, const std::vector<
   for (Eigen::Index v = 0; v < n; ++v) x->segment<3>(3 * v) += sum.row(v).transpose();
 }
 
+bool IsPathMix(const std::vector<TargetPath>& paths, const std::vector<double>& weights) {
+  int corrected = 0;
+  for (size_t t = 0; t < paths.size() && t < weights.size(); ++t) corrected += !paths[t].empty() && weights[t] != 0.0;
+  return corrected >= 2;
+}
+
+double ScaleMixStart(const std::vector<TargetPath>& paths, const std::vector<double>& weights,
+                     const Eigen::VectorXd& base, const std::function<double(const Eigen::VectorXd&)>& energy,
+                     Eigen::VectorXd* x) {
+  if (!IsPathMix(paths, weights) || base.size() != x->size()) return 1.0;
+  constexpr int kSteps = 8;  // the ray's grid, from s = 1 down
+  const Eigen::VectorXd correction = *x - base;
+  std::vector<double> e(kSteps + 1, 0.0);  // e[k]: the energy at s = k / kSteps
+  e[kSteps] = energy(*x);
+  if (!std::isfinite(e[kSteps])) return 1.0;
+  int k = kSteps;
+  while (k > 0) {
+    e[k - 1] = energy(base + (static_cast<double>(k - 1) / kSteps) * correction);
+    if (!(e[k - 1] < e[k])) break;
+    --k;
+  }
+  if (k == kSteps) return 1.0;
+  double s = static_cast<double>(k) / kSteps, lowest = e[k];
+  if (k > 0) {
+    // The parabola through the grid's three energies around the lowest, at its vertex (inside, as e[k] is below
+    // both neighbours).
+    const double curvature = e[k - 1] - 2.0 * e[k] + e[k + 1];
+    if (curvature > 0.0) {
+      const double vertex = (k + 0.5 * (e[k - 1] - e[k + 1]) / curvature) / kSteps;
+      const double at = energy(base + vertex * correction);
+      if (at < lowest) lowest = at, s = vertex;
+    }
+  }
+  *x = base + s * correction;
+  return s;
+}
+
 namespace {
 
 // The one target a frame moves, or -1.

@@ -93,6 +93,18 @@ std::vector<TargetPath> BuildTargetPaths(const Rig& rig, const TargetPathsOption
 // their exact tangents (three-point ones where a sample has none), held at the end samples beyond them.
 void EvaluatePath(const TargetPath& path, double alpha, Eigen::MatrixXd* correction);
 
+// A mix frame's start (two or more targets with paths) on the ray base + s (x - base), s in [0, 1], where base
+// is the linear blend (with the frame's held coordinates) and x the linear blend plus the targets' corrections.
+// Each correction restores what the linear blend loses of its own target's motion alone, so where the targets
+// move the same parts their sum overshoots (horse poses: the summed start's energy up to 300 times the
+// answer's). From s = 1 down in steps of 1/8 while the energy falls, then one parabolic step between the last
+// three; x moves to the lowest energy met. A function of the frame alone; the local minimum nearest s = 1, so a
+// sweep's starts move with its weights. Returns s (1: x unchanged; also for frames of fewer than two targets).
+bool IsPathMix(const std::vector<TargetPath>& paths, const std::vector<double>& weights);  // ScaleMixStart's frames
+double ScaleMixStart(const std::vector<TargetPath>& paths, const std::vector<double>& weights,
+                     const Eigen::VectorXd& base, const std::function<double(const Eigen::VectorXd&)>& energy,
+                     Eigen::VectorXd* x);
+
 // x += sum_t R correction_t(w_t), stacked 3n, over the targets' frame weights, rotated by the frame's anchor
 // rotation R.
 void AddPathCorrections(const std::vector<TargetPath>& paths, const std::vector<double>& weights,

@@ -572,6 +572,65 @@ TEST(TargetPaths, AStopCheckEndsTheBuildWithinASecond) {
   EXPECT_LT(std::chrono::duration<double>(ended - stopped).count(), 1.0 * testing::kSlowdown);
 }
 
+// A mix frame starts on the ray from the linear blend through its targets' summed corrections, at the lowest
+// energy the walk down from the full sum meets. Corrections made to overshoot (three times the sum) are
+// walked back to a lower energy, on the ray, with held coordinates kept; a single-target frame's start is
+// left as it is; the solve from the scaled start converges to a certified minimum, the same bits twice.
+TEST(TargetPaths, AMixStartsAtTheLowestEnergyOnItsCorrectionsRay) {
+  const auto& rig = SharedCylinder();
+  const std::vector<double> weights = {0.6, 0.7};
+  ASSERT_TRUE(internal::IsPathMix(rig->internals().paths, weights));
+  FrameStart start(*rig, weights);
+  const Points linear = internal::LinearBlendShapes(*rig, rig->ShapeWeights(weights));
+  Eigen::VectorXd base(start.x.size());
+  for (Eigen::Index d = 0; d < base.size(); ++d) {
+    base[d] = start.held[static_cast<size_t>(d)] ? start.x[d] : linear(d / 3, d % 3);
+  }
+  const auto energy = [&](const Eigen::VectorXd& y) { return start.springs.Energy(y); };
+  for (double overshoot : {1.0, 3.0}) {
+    const Eigen::VectorXd given = base + overshoot * (start.x - base);
+    Eigen::VectorXd x = given;
+    const double s = internal::ScaleMixStart(rig->internals().paths, weights, base, energy, &x);
+    const std::string where = "overshoot " + std::to_string(overshoot);
+    ASSERT_GE(s, 0.0) << where;
+    ASSERT_LE(s, 1.0) << where;
+    EXPECT_LE(energy(x), energy(given)) << where;
+    EXPECT_LE(energy(x), energy(base + 0.875 * (given - base)) + 1e-15) << where;  // no higher than the walk's first step
+    EXPECT_LT((x - (base + s * (given - base))).lpNorm<Eigen::Infinity>(), 1e-12) << where;
+    for (size_t d = 0; d < start.held.size(); ++d) {
+      if (start.held[d]) ASSERT_EQ(x[static_cast<Eigen::Index>(d)], given[static_cast<Eigen::Index>(d)]) << where;
+    }
+    if (overshoot == 3.0) {
+      EXPECT_LT(s, 0.75) << where;  // at least two steps back
+      EXPECT_LT(energy(x), 0.5 * energy(given)) << where;
+    }
+    Eigen::VectorXd again = given;
+    EXPECT_EQ(internal::ScaleMixStart(rig->internals().paths, weights, base, energy, &again), s);
+    EXPECT_EQ(again, x);
+  }
+  // One target: its path's own start, untouched.
+  FrameStart single(*rig, {0.6, 0.0});
+  Eigen::VectorXd x = single.x;
+  EXPECT_EQ(internal::ScaleMixStart(rig->internals().paths, {0.6, 0.0}, base, energy, &x), 1.0);
+  EXPECT_EQ(x, single.x);
+  EXPECT_FALSE(internal::IsPathMix(rig->internals().paths, {0.6, 0.0}));
+
+  SolveOptions options;
+  options.certify_minimum = true;
+  Solver solver(rig, options);
+  Points first, second;
+  const SolveSummary summary = solver.Solve(Frame{weights}, &first);
+  ASSERT_TRUE(summary.converged()) << summary.message;
+  EXPECT_EQ(summary.minimum, MinimumCheck::kMinimum);
+  EXPECT_GE(summary.mix_start_scale, 0.0);
+  EXPECT_LE(summary.mix_start_scale, 1.0);
+  Solver other(rig, options);
+  other.Solve(Frame{{0.6, 0.0}}, &second);  // an earlier frame changes nothing
+  const SolveSummary repeat = other.Solve(Frame{weights}, &second);
+  EXPECT_EQ(repeat.mix_start_scale, summary.mix_start_scale);
+  EXPECT_EQ(first, second);
+}
+
 TEST(TargetPaths, OptionsOutOfRangeAreRefused) {
   RigOptions options;
   options.path_tolerance = 0.0;
