@@ -53,7 +53,7 @@ python3 - "$work/symbols.txt" "$report" "$row" "$steps" "$method" "$(grep -c 'sw
 import re, sys
 symbols, report, row, steps, method, frames = sys.argv[1:]
 groups = {}
-order = ["3n factorization (CHOLMOD numeric, BLAS level 3)", "triangular solves with the factor",
+order = ["3n factorization (numeric, BLAS level 3)", "triangular solves with the factor",
          "spring passes (forces, energy, Hessian blocks)", "Hessian products (conjugate gradients)",
          "vector work and allocation (Eigen, memset, memcpy)", "threading (TBB, OpenMP, kernel scheduling)",
          "other"]
@@ -67,7 +67,11 @@ for line in open(symbols):
     s = s.replace("(anonymous namespace)::", "")
     if "HessianProduct" in s:
         g = order[3]
-    elif "Cholesky::Precondition" in s or re.search(r"RoundedSupernodalSolve|Solve(Avx512|Avx2|Generic)\b", s):
+    elif "TreeCholesky::" in s:
+        # our two-thread numeric factorization (tree_cholesky.cc): assembly and scattering its updates
+        g = order[0]
+    elif "Cholesky::Precondition" in s or re.search(
+            r"RoundedSupernodalSolve|Solve(Avx512|Avx2|Generic)\b|(Avx512|Avx2|Generic)(Forward|Backward)", s):
         # our supernodal solve with the factor rounded to single precision (rounded_solve.cc's kernels)
         g = order[1]
     elif "SpringSystem::Run" in s or "SpringSystem::Energy" in s:
