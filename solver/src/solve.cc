@@ -205,8 +205,8 @@ SolveSummary Solver::Impl::Solve(const Frame& frame, Points* positions, const st
     summary.solve_ms = Elapsed(start);
     return summary;
   }
-  if (options_.use_target_paths && options_.scale_mix_start) {
-    Eigen::VectorXd base(x_.size());
+  if (options_.use_target_paths && options_.scale_mix_start && internal::IsPathMix(rig.internals().paths, frame.weights)) {
+    Eigen::VectorXd base(x_.size());  // only for mixes: a path frame's start is ready in milliseconds
     for (Eigen::Index d = 0; d < x_.size(); ++d) base[d] = held_[d] ? x_[d] : linear(d / 3, d % 3);
     summary.mix_start_scale = internal::ScaleMixStart(
         rig.internals().paths, frame.weights, base, [&](const Eigen::VectorXd& y) { return springs_.Energy(y); }, &x_);
