@@ -61,7 +61,10 @@ class CholmodCholesky final : public SparseCholesky {
     cholmod_sparse a = View(nullptr);
     if (factor_ != nullptr) cholmod_free_factor(&factor_, &common_);
     factor_ = cholmod_analyze(&a, &common_);
-    schedule_.reset();
+    // Planned on the first preconditioning solve of this factor or of any clone, once for them all: a fresh
+    // Solver's clone no longer plans it again (the cat: about 100 ms a Solver), and a factor used only for
+    // direct solves (a local finish's) never does.
+    schedule_ = std::make_shared<SharedSchedule>();
     tree_.reset();
     if (factor_ == nullptr || common_.status < CHOLMOD_OK) {
       throw Error(ErrorCode::kNumerical,
@@ -118,7 +121,7 @@ class CholmodCholesky final : public SparseCholesky {
       Solve(b, x);
       return;
     }
-    RoundedSupernodalSolve(RoundedView(), schedule_.get(), b, x, &workspace_);
+    RoundedSupernodalSolve(RoundedView(), &schedule_->plan, b, x, &workspace_);
   }
 
   void Solve(const double* b, double* x) override {
@@ -156,8 +159,8 @@ class CholmodCholesky final : public SparseCholesky {
     for (size_t k = 0; k < factor_->xsize; ++k) rounded_[k] = static_cast<float>(values[k]);
     const SupernodalFactor view = RoundedView();
     workspace_.Fit(view, static_cast<int>(factor_->maxesize));
-    // How two threads share a solve: from the analysed structure, once (clones share it).
-    if (schedule_ == nullptr) schedule_ = std::make_shared<const SolveSchedule>(PlanSolve(view));
+    // How two threads share a solve: from the analysed structure, once for this factor and its clones.
+    std::call_once(schedule_->once, [&] { schedule_->plan = PlanSolve(view); });
   }
 
   SupernodalFactor RoundedView() const {
@@ -184,7 +187,12 @@ class CholmodCholesky final : public SparseCholesky {
   bool round_ = true;
   std::vector<float> rounded_;
   SolveWorkspace workspace_;
-  std::shared_ptr<const SolveSchedule> schedule_;
+  // Written once under its flag (by whichever clone preconditions first), then only read.
+  struct SharedSchedule {
+    std::once_flag once;
+    SolveSchedule plan;
+  };
+  std::shared_ptr<SharedSchedule> schedule_;
   std::shared_ptr<const TreeCholesky> tree_;
   TreeCholesky::Workspace tree_workspace_;
   bool tree_factorization_ = true;
