@@ -106,13 +106,9 @@ class CholmodCholesky final : public SparseCholesky {
   FactorStatus Factorize(const double* values) override {
     rounded_.clear();  // rounded on the first Precondition: a factor used only for direct solves never is
     if (tree_ != nullptr) {
-      if (factor_->xtype == CHOLMOD_PATTERN &&
-          !cholmod_change_factor(CHOLMOD_REAL, 1, 1, 1, 1, factor_, &common_)) {
-        return FactorStatus::kFailed;
-      }
-      if (!advised_) {
-        AdviseHugePages(factor_->x, factor_->xsize * sizeof(double));
-        advised_ = true;
+      if (factor_->xtype == CHOLMOD_PATTERN) {
+        if (!cholmod_change_factor(CHOLMOD_REAL, 1, 1, 1, 1, factor_, &common_)) return FactorStatus::kFailed;
+        AdviseHugePages(factor_->x, factor_->xsize * sizeof(double));  // fresh entries, not yet written
       }
       if (!tree_->Factorize(StructureView(), values, static_cast<double*>(factor_->x), &tree_workspace_)) {
         factor_->minor = 0;
@@ -213,7 +209,6 @@ class CholmodCholesky final : public SparseCholesky {
   std::shared_ptr<const TreeCholesky> tree_;
   TreeCholesky::Workspace tree_workspace_;
   bool tree_factorization_ = true;
-  bool advised_ = false;  // the factor's entries were offered huge pages
   cholmod_factor* factor_ = nullptr;
   double solves_per_factorization_ = 1.0;
   cholmod_dense* solution_ = nullptr;
