@@ -28,7 +28,8 @@ class LinearSystem {
   // z = A^{-1} r with the kept factor, restricted to the free coordinates of `held` (zero on held ones).
   void Solve(const Eigen::VectorXd& r, const std::vector<char>& held, Eigen::VectorXd* z);
   // The same with the factor rounded to single precision where the backend keeps such a copy (CHOLMOD):
-  // for preconditioning conjugate gradients only, never for a step taken as it is.
+  // for preconditioning conjugate gradients, and for a Newton step only once its residual in the factored system
+  // is checked (InexactNewton::RoundedStep refines it, or solves in double).
   void Precondition(const Eigen::VectorXd& r, const std::vector<char>& held, Eigen::VectorXd* z);
 
   bool has_factor() const { return kept_; }
