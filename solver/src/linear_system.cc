@@ -105,6 +105,27 @@ void LinearSystem::Apply(const Eigen::VectorXd& r, const std::vector<char>& held
   }
 }
 
+int LinearSystem::SolveTo(const Eigen::VectorXd& r, const std::vector<char>& held, double relative_residual,
+                          const Product& product, Eigen::VectorXd* z) {
+  const double target = relative_residual * r.norm();
+  residual_.resize(r.size());
+  correction_.resize(r.size());
+  Precondition(r, held, z);
+  for (int refinements = 0;; ++refinements) {
+    product(*z, &residual_);
+    residual_ = r - residual_;
+    for (Eigen::Index d = 0; d < residual_.size(); ++d) {
+      if (held[d]) residual_[d] = 0.0;
+    }
+    if (residual_.norm() <= target) return refinements;
+    if (refinements == 2) break;
+    Precondition(residual_, held, &correction_);
+    *z += correction_;
+  }
+  Solve(r, held, z);
+  return -1;
+}
+
 bool LinearSystem::FactorCovers(const std::vector<char>& held) const {
   if (!kept_) return false;
   if (!kept_reduced_) return true;

@@ -29,8 +29,16 @@ class LinearSystem {
   void Solve(const Eigen::VectorXd& r, const std::vector<char>& held, Eigen::VectorXd* z);
   // The same with the factor rounded to single precision where the backend keeps such a copy (CHOLMOD):
   // for preconditioning conjugate gradients, and for a Newton step only once its residual in the factored system
-  // is checked (InexactNewton::RoundedStep refines it, or solves in double).
+  // is checked (SolveTo refines it, or solves in double).
   void Precondition(const Eigen::VectorXd& r, const std::vector<char>& held, Eigen::VectorXd* z);
+
+  // A step with the kept factor to a relative residual: z from Precondition, refined (z += P^{-1} (r - A z)) until
+  // |r - A z| <= relative_residual |r|, where `product` gives A z (the factored matrix, on the free coordinates);
+  // after two refinements that fall short, the double-precision Solve. Returns the refinements made, or -1 for
+  // the Solve. `relative_residual` 0 always ends in the Solve.
+  using Product = std::function<void(const Eigen::VectorXd& v, Eigen::VectorXd* product)>;
+  int SolveTo(const Eigen::VectorXd& r, const std::vector<char>& held, double relative_residual,
+              const Product& product, Eigen::VectorXd* z);
 
   bool has_factor() const { return kept_; }
   // Whether the kept factor can precondition a system with these held coordinates: the full system's
@@ -48,6 +56,7 @@ class LinearSystem {
   LinearSolverType type_;
   std::unique_ptr<SparseCholesky> cholesky_;  // the full system
   std::unique_ptr<Reduced> reduced_;
+  Eigen::VectorXd residual_, correction_;  // SolveTo's workspace
   bool use_reduced_ = false;
   bool kept_ = false;
   bool kept_reduced_ = false;

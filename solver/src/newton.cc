@@ -63,7 +63,14 @@ bool InexactNewton::FactorizeAndSolve(const MinimizerProblem& problem, const Eig
     // The factor is kept to precondition the next steps, which round it to single precision for the two-thread
     // solve: this step uses that solve too (the cat: 3.8 ms against 11.2 for the double one; the rounding, about
     // 6 ms on one thread, is paid once for both).
-    RoundedStep(problem, kLadder[ladder.rung].shift / problem.mean_rest_length + problem.diagonal_shift, forcing);
+    // A single-precision factor solves to a relative residual of about 1e-6 to 1e-4 (the cat), which the
+    // forcing term allows but for the last steps, where one refinement takes it to about the square. The
+    // product is with the factored matrix: the blocks the ladder assembled last, and its shift.
+    const double shift = kLadder[ladder.rung].shift / problem.mean_rest_length + problem.diagonal_shift;
+    linear.SolveTo(
+        springs.force(), held, forcing,
+        [&](const Eigen::VectorXd& v, Eigen::VectorXd* product) { springs.HessianProduct(v, held, shift, product); },
+        &step_);
   } else {
     linear.Solve(springs.force(), held, &step_);
   }
@@ -73,29 +80,6 @@ bool InexactNewton::FactorizeAndSolve(const MinimizerProblem& problem, const Eig
     return false;
   }
   return true;
-}
-
-void InexactNewton::RoundedStep(const MinimizerProblem& problem, double shift, double forcing) {
-  SpringSystem& springs = *problem.springs;
-  LinearSystem& linear = *problem.linear;
-  const std::vector<char>& held = *problem.held;
-  const Eigen::VectorXd& force = springs.force();
-  // A single-precision factor solves to a relative residual of about 1e-6 to 1e-4 (the cat, the face), which
-  // the forcing term allows but for the last steps; one refinement (a product with the factored matrix: the
-  // blocks the ladder assembled, and its shift) takes it to about the square.
-  const double target = forcing * force.norm();
-  correction_.resize(force.size());
-  product_.resize(force.size());
-  linear.Precondition(force, held, &step_);
-  for (int refinement = 0;; ++refinement) {
-    springs.HessianProduct(step_, held, shift, &product_);
-    product_ = force - product_;
-    if (product_.norm() <= target) return;
-    if (refinement == 2) break;
-    linear.Precondition(product_, held, &correction_);
-    step_ += correction_;
-  }
-  linear.Solve(force, held, &step_);
 }
 
 ConjugateGradientsStatus InexactNewton::ConjugateGradientStep(const MinimizerProblem& problem, double forcing,

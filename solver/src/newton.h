@@ -28,10 +28,6 @@ class InexactNewton final : public Minimizer {
   // the factored system) where the factor is kept as a preconditioner, exact otherwise.
   bool FactorizeAndSolve(const MinimizerProblem& problem, const Eigen::VectorXd& x, double forcing,
                          MinimizerSummary* summary);
-  // step_ from the kept factor's single-precision solve (the one the conjugate gradients use next), refined
-  // until its residual in the factored system (shift on the diagonal) is below `forcing` of the force's;
-  // the double-precision solve where two refinements do not get there.
-  void RoundedStep(const MinimizerProblem& problem, double shift, double forcing);
   ConjugateGradientsStatus ConjugateGradientStep(const MinimizerProblem& problem, double forcing,
                                                  MinimizerSummary* summary);
   // Newton-CG preconditioned by the Laplacian: true Hessian, then projected; a truncated (but descending)
@@ -48,7 +44,6 @@ class InexactNewton final : public Minimizer {
   bool refactor_next_ = false;  // the last conjugate gradients cost too much: refactor at the next step
   std::vector<double> values_;  // the assembled Hessian
   Eigen::VectorXd step_, trial_;
-  Eigen::VectorXd correction_, product_;  // RoundedStep's workspace
   std::unique_ptr<ConjugateGradients> cg_;
   Eigen::VectorXd negative_direction_;
   bool has_negative_direction_ = false;

@@ -6,7 +6,9 @@
 #include <Eigen/Dense>
 #include <algorithm>
 #include <cmath>
+#include <memory>
 #include <thread>
+#include <utility>
 
 #include "hessian_pattern.h"
 
@@ -74,6 +76,32 @@ struct Chain {
     }
     return out;
   }
+};
+
+// `count` held coordinates of n, every stride-th modulo n.
+std::vector<char> HeldEvery(int n, int count, int stride) {
+  std::vector<char> held(n, 0);
+  for (int d = 0; d < count; ++d) held[(stride * d) % n] = 1;
+  return held;
+}
+
+// v with its held coordinates zeroed.
+Eigen::VectorXd FreeOnly(Eigen::VectorXd v, const std::vector<char>& held) {
+  for (Eigen::Index d = 0; d < v.size(); ++d) {
+    if (held[d]) v[d] = 0.0;
+  }
+  return v;
+}
+
+// A 14 x 14 grid's linear system on a backend: the factor has wide supernodes with rows below them.
+struct GridSystem {
+  explicit GridSystem(LinearSolverType type) : grid(Chain::Grid(14)), analyzed(SparseCholesky::Create(type)) {
+    analyzed->Analyze(grid.pattern.matrix);
+    system = std::make_unique<LinearSystem>(grid.pattern.matrix, *analyzed, type);
+  }
+  Chain grid;
+  std::unique_ptr<SparseCholesky> analyzed;
+  std::unique_ptr<LinearSystem> system;
 };
 
 class LinearSystemTest : public ::testing::TestWithParam<LinearSolverType> {};
@@ -198,20 +226,13 @@ TEST_P(LinearSystemTest, ClonesOnSeveralThreadsGiveExactlyWhatOneThreadGives) {
 // preconditioned conjugate gradients stay conjugate gradients; the other backends' is their solve. On a grid whose factor has
 // wide supernodes with rows below them, with no, few and many held coordinates.
 TEST_P(LinearSystemTest, PreconditioningIsAFixedSymmetricOperatorCloseToTheSolve) {
-  const Chain grid = Chain::Grid(14);
+  GridSystem fixture(GetParam());
+  const Chain& grid = fixture.grid;
+  LinearSystem& system = *fixture.system;
   const int n = grid.pattern.matrix.n;
-  auto analyzed = SparseCholesky::Create(GetParam());
-  analyzed->Analyze(grid.pattern.matrix);
-  LinearSystem system(grid.pattern.matrix, *analyzed, GetParam());
   for (const int held_count : {0, 5, n / 4}) {
-    std::vector<char> held(n, 0);
-    for (int d = 0; d < held_count; ++d) held[(11 * d) % n] = 1;
-    const auto free_only = [&](Eigen::VectorXd v) {
-      for (int d = 0; d < n; ++d) {
-        if (held[d]) v[d] = 0.0;
-      }
-      return v;
-    };
+    const std::vector<char> held = HeldEvery(n, held_count, 11);
+    const auto free_only = [&](Eigen::VectorXd v) { return FreeOnly(std::move(v), held); };
     system.Select(held);
     ASSERT_EQ(system.Factorize(grid.Held(held)), FactorStatus::kOk);
     const Eigen::VectorXd u = free_only(Eigen::VectorXd::LinSpaced(n, 1.0, -2.0));
@@ -241,6 +262,57 @@ TEST_P(LinearSystemTest, PreconditioningIsAFixedSymmetricOperatorCloseToTheSolve
         EXPECT_EQ(pu[d], 0.0);
       }
     }
+  }
+}
+
+// The Newton step after a fresh factorization (InexactNewton): the preconditioning solve, refined against the
+// factored matrix to the residual asked, or the double-precision solve.
+TEST_P(LinearSystemTest, SolveToReachesTheResidualAskedOrSolvesInDouble) {
+  GridSystem fixture(GetParam());
+  const Chain& grid = fixture.grid;
+  LinearSystem& system = *fixture.system;
+  const int n = grid.pattern.matrix.n;
+  const bool rounded =
+      GetParam() == LinearSolverType::kCholmodSupernodal || GetParam() == LinearSolverType::kCholmodLibrary;
+  for (const int held_count : {0, n / 4}) {
+    const std::vector<char> held = HeldEvery(n, held_count, 7);
+    const auto free_only = [&](Eigen::VectorXd v) { return FreeOnly(std::move(v), held); };
+    system.Select(held);
+    ASSERT_EQ(system.Factorize(grid.Held(held)), FactorStatus::kOk);
+    int products = 0;
+    const LinearSystem::Product product = [&](const Eigen::VectorXd& v, Eigen::VectorXd* out) {
+      ++products;
+      *out = free_only(grid.dense * free_only(v));
+    };
+    const Eigen::VectorXd r = free_only(Eigen::VectorXd::LinSpaced(n, 0.0, 5.0).array().cos().matrix());
+    const auto relative_residual = [&](const Eigen::VectorXd& z) {
+      return (r - free_only(grid.dense * z)).norm() / r.norm();
+    };
+    Eigen::VectorXd exact(n), z(n);
+    system.Solve(r, held, &exact);
+    for (const double asked : {1e-3, 1e-10}) {
+      products = 0;
+      const int refinements = system.SolveTo(r, held, asked, product, &z);
+      SCOPED_TRACE(::testing::Message() << "held " << held_count << ", residual asked " << asked);
+      ASSERT_GE(refinements, 0);  // the refined rounded solve gets there on a well-conditioned matrix
+      EXPECT_LE(relative_residual(z), asked);
+      EXPECT_EQ(products, refinements + 1);
+      // The rounded factor alone leaves about 1e-7 here: 1e-10 takes a refinement; an exact backend takes none.
+      if (rounded && asked < 1e-8) {
+        EXPECT_GE(refinements, 1);
+      }
+      if (!rounded && GetParam() != LinearSolverType::kMumpsSingle) {
+        EXPECT_EQ(refinements, 0);
+      }
+      for (int d = 0; d < n; ++d) {
+        if (held[d]) {
+          EXPECT_EQ(z[d], 0.0);
+        }
+      }
+    }
+    // Nothing reaches a zero residual: the double-precision solve, to the bit.
+    EXPECT_EQ(system.SolveTo(r, held, 0.0, product, &z), -1);
+    EXPECT_EQ(z, exact);
   }
 }
 
