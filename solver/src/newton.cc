@@ -61,11 +61,10 @@ bool InexactNewton::FactorizeAndSolve(const MinimizerProblem& problem, const Eig
   const auto solve_start = std::chrono::steady_clock::now();
   if (options_.reuse_factorization) {
     // The factor is kept to precondition the next steps, which round it to single precision for the two-thread
-    // solve: this step uses that solve too (the cat: 3.8 ms against 11.2 for the double one; the rounding, about
-    // 6 ms on one thread, is paid once for both).
-    // A single-precision factor solves to a relative residual of about 1e-6 to 1e-4 (the cat), which the
-    // forcing term allows but for the last steps, where one refinement takes it to about the square. The
-    // product is with the factored matrix: the blocks the ladder assembled last, and its shift.
+    // solve: this step uses that solve too (the cat: 3.8 ms against 11.2 for the double one; the rounding is paid
+    // once for both). Its relative residual, about 1e-6 to 1e-4, meets the forcing term but in the last steps,
+    // where one refinement takes it to about the square. The product is with the factored matrix: the blocks
+    // the ladder assembled last, and its shift.
     const double shift = kLadder[ladder.rung].shift / problem.mean_rest_length + problem.diagonal_shift;
     linear.SolveTo(
         springs.force(), held, forcing,
