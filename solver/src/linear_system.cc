@@ -146,7 +146,8 @@ LadderResult FactorizeWithLadder(
   LadderResult result;
   for (size_t i = first; i < kLadderRungs; ++i) {
     const LadderRung& rung = kLadder[i];
-    const std::vector<double>& values = assemble(rung.negative_scale, rung.shift * mean_stiffness);
+    result.shift = rung.shift * mean_stiffness;
+    const std::vector<double>& values = assemble(rung.negative_scale, result.shift);
     result.status = system.Factorize(values);
     ++result.factorizations;
     if (rung.negative_scale < 1.0) ++result.projected;

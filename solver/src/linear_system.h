@@ -78,6 +78,7 @@ inline constexpr size_t kFirstProjectedRung = 2;
 struct LadderResult {
   FactorStatus status = FactorStatus::kFailed;
   size_t rung = 0;  // the rung that succeeded (or the last tried)
+  double shift = 0.0;  // that rung's absolute diagonal shift (as given to assemble)
   int factorizations = 0, projected = 0, shifted = 0;
 };
 

@@ -65,7 +65,7 @@ bool InexactNewton::FactorizeAndSolve(const MinimizerProblem& problem, const Eig
     // once for both). Its relative residual, about 1e-6 to 1e-4, meets the forcing term but in the last steps,
     // where one refinement takes it to about the square. The product is with the factored matrix: the blocks
     // the ladder assembled last, and its shift.
-    const double shift = kLadder[ladder.rung].shift / problem.mean_rest_length + problem.diagonal_shift;
+    const double shift = ladder.shift + problem.diagonal_shift;
     linear.SolveTo(
         springs.force(), held, forcing,
         [&](const Eigen::VectorXd& v, Eigen::VectorXd* product) { springs.HessianProduct(v, held, shift, product); },
