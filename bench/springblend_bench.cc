@@ -66,6 +66,10 @@ std::optional<bool> g_follow_negative_curvature;
 std::optional<bool> g_scale_mix_start;
 // --linear-solver: the rigs' sparse Cholesky backend (RigOptions::linear_solver).
 LinearSolverType g_linear_solver = RigOptions{}.linear_solver;
+// --precomputed DIR: each row's target paths kept in DIR/<row>-<backend>.precomputed (Rig::SavePrecomputed) and
+// reused by later runs, so a run that measures frames need not solve the paths again (the upload column then
+// measures a restart).
+fs::path g_precomputed_dir;
 SolveOptions WithTolerances(SolveOptions options) {
   if (g_residual_tolerance) options.residual_tolerance = *g_residual_tolerance;
   if (g_step_tolerance) options.step_tolerance = *g_step_tolerance;
@@ -436,8 +440,28 @@ std::shared_ptr<const Rig> BuildRig(const RowSpec& spec, RowResult* result) {
   const auto start = Clock::now();
   RigOptions rig_options;
   rig_options.linear_solver = g_linear_solver;
-  auto rig = Rig::Build(std::move(rest), std::move(targets), rig_options);
+  std::string saved;
+  const fs::path saved_path =
+      g_precomputed_dir.empty() ? fs::path() : g_precomputed_dir / (spec.name + "-" + ToString(g_linear_solver) + ".precomputed");
+  if (!saved_path.empty() && fs::exists(saved_path)) {
+    std::ifstream in(saved_path, std::ios::binary);
+    saved.assign(std::istreambuf_iterator<char>(in), std::istreambuf_iterator<char>());
+  }
+  std::vector<TargetSpec> specs;
+  for (auto& target : targets) {
+    TargetSpec target_spec;
+    target_spec.name = target.name;
+    target_spec.mesh = std::move(target);
+    specs.push_back(std::move(target_spec));
+  }
+  RigBuildControl control;
+  if (!saved.empty()) control.precomputed = &saved;
+  auto rig = Rig::Build(std::move(rest), std::move(specs), rig_options, control);
   result->build_ms = MsSince(start);
+  if (!saved_path.empty() && !rig->summary().paths_loaded) {
+    fs::create_directories(g_precomputed_dir);
+    std::ofstream(saved_path, std::ios::binary) << rig->SavePrecomputed();
+  }
   malloc_trim(0);
   const std::optional<double> after = StatusMb("VmRSS");
   // The meshes moved into the rig were counted before the build; the rest is what the build added.
@@ -1045,6 +1069,9 @@ int Main(int argc, char** argv) {
                  "scaled|summed: override SolveOptions::scale_mix_start (a mix frame's start at the lowest energy on "
                  "the ray through its targets' summed path corrections, or the full sum) in every configuration")
       ->check(CLI::IsMember({"scaled", "summed"}));
+  app.add_option("--precomputed", g_precomputed_dir,
+                 "directory keeping each row's target paths between runs (a later run loads them instead of solving "
+                 "them; its upload column then measures a restart)");
   std::string linear_solver = ToString(g_linear_solver);
   app.add_option("--linear-solver", linear_solver, "sparse Cholesky backend: cholmod, cholmod-double, cholmod-library (CHOLMOD's own factorization), mumps or eigen")
       ->check(CLI::IsMember({"cholmod", "cholmod-double", "cholmod-library", "mumps", "eigen"}));
