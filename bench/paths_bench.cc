@@ -1,9 +1,12 @@
 // springblend-paths-bench: what the rig's target paths buy. Per row (a rest mesh and its targets):
 //   - the rig build, and per target its path's build time, samples, solves and certified midpoint error;
 //   - the rig's memory with and without its paths (the rig's own estimate, and the resident-set growth);
+//   - a restart: the rig built again with its paths left in the file they were saved to (as the server's cache
+//     file), its resident-set growth, the path bytes it holds and leaves in the file, and its first frame;
 //   - path frames: each target alone at --frames off-sample alphas over [-0.25, 1.25] (the in-between weights
 //     and the extrapolated ends included when the rig has them), solved by the shipped options (a local finish
-//     from the dense path) and by the full solve from the same start (the baseline of the same run), with
+//     from the dense path, read from that file as the server does) and by the full solve from the same start
+//     (the baseline of the same run, on the rig as built), with
 //     ms (median, max), how each frame was finished and the share of vertices solved;
 //   - accuracy: the largest distance of a path frame from the same frame solved to 1e-12 from the path's
 //     start, over the bounding-box diagonal.
@@ -144,16 +147,28 @@ json RunRow(const RowSpec& spec, const Settings& settings) {
                           {"max_error", p.max_error}, {"uncertified", p.uncertified}});
   }
   row["paths"] = per_target;
+  std::shared_ptr<const Rig> served = rig;
+  fs::path saved_file;
   {
     // A restart: the same meshes built again with the saved paths, and its first frame.
     const std::string saved = rig->SavePrecomputed();
     TriangleMesh rest2 = LoadMesh((spec.dir / spec.rest).string());
     std::vector<TargetSpec> specs = TargetsOf(spec);
+    // As the server restarts: the paths left in the file they were saved to, their samples read as frames need
+    // them (RigBuildControl::precomputed_file), so the restarted rig holds only their metadata.
+    saved_file = settings.out / (spec.name + ".precomputed");
+    fs::create_directories(settings.out);
+    std::ofstream(saved_file, std::ios::binary) << saved;
     RigBuildControl control;
-    control.precomputed = &saved;
+    control.precomputed_file = PrecomputedLocation{saved_file.string()};
+    malloc_trim(0);
+    const auto reload_before = ResidentMb();
     const auto reload_start = Clock::now();
     const auto reloaded = Rig::Build(std::move(rest2), std::move(specs), settings.rig, control);
     row["reload_ms"] = MsSince(reload_start);
+    malloc_trim(0);
+    const auto reload_after = ResidentMb();
+    if (reload_before && reload_after) row["reload_resident_mb"] = std::max(0.0, *reload_after - *reload_before);
     row["reload_paths_loaded"] = reloaded->summary().paths_loaded;
     Solver first(reloaded);
     Frame frame;
@@ -163,6 +178,16 @@ json RunRow(const RowSpec& spec, const Settings& settings) {
     const SolveSummary summary = first.Solve(frame, &x);
     row["reload_first_frame_ms"] = summary.solve_ms;
     row["precomputed_mb"] = saved.size() / 1048576.0;
+    row["reload_path_mb_held"] = reloaded->summary().path_bytes / 1048576.0;
+    row["reload_path_mb_in_file"] = reloaded->summary().path_file_bytes / 1048576.0;
+    served = reloaded;  // the path frames below read their samples from the file, as the server's do
+    // Its two-thread solve's schedule, planned once per rig (about 0.1-0.2 s) on its first preconditioned solve:
+    // the built rig planned it during its path build, so the restarted one plans it here, untimed, rather than in
+    // the first path frame that falls back to a full solve.
+    SolveOptions full_solve;
+    full_solve.local_finish = false;
+    full_solve.path_span_step = false;
+    Solver(reloaded, full_solve).Solve(frame, &x);
   }
 
   const double diagonal = s.bounding_box_diagonal;
@@ -175,8 +200,8 @@ json RunRow(const RowSpec& spec, const Settings& settings) {
   tight.residual_tolerance = 1e-12;
   tight.step_tolerance = 1e-12;
   tight.max_iterations = 400;
-  Solver path_solver(rig, shipped), full_solver(rig, full), tight_solver(rig, tight);
-  std::vector<double> path_ms, full_ms, accuracy, share;
+  Solver path_solver(served, shipped), full_solver(rig, full), tight_solver(rig, tight);
+  std::vector<double> path_ms, full_ms, accuracy, share, start_memory_ms, start_file_ms;
   int local = 0, frames = 0, converged = 0;
   json frame_rows = json::array();
   const int measured = std::min<int>(settings.targets_measured, rig->num_targets());
@@ -190,6 +215,12 @@ json RunRow(const RowSpec& spec, const Settings& settings) {
       frame.weights.assign(rig->num_targets(), 0.0);
       frame.weights[t] = alpha;
       Points p, f, r;
+      // The frame's start (the paths' interpolant) from samples held and from samples read from the file.
+      for (int pass = 0; pass < 2; ++pass) {
+        const auto start = Clock::now();
+        const Points from = (pass == 0 ? full_solver : path_solver).Start(frame.weights);
+        (pass == 0 ? start_memory_ms : start_file_ms).push_back(MsSince(start));
+      }
       const SolveSummary ps = path_solver.Solve(frame, &p);
       const SolveSummary fs_ = full_solver.Solve(frame, &f);
       ++frames;
@@ -215,9 +246,13 @@ json RunRow(const RowSpec& spec, const Settings& settings) {
       std::cerr << fr.dump() << "\n";
     }
   }
+  served.reset();
+  fs::remove(saved_file);
   row["frames"] = frames;
   row["frames_converged"] = converged;
   row["frames_local"] = local;
+  row["start_ms_median_memory"] = Median(start_memory_ms);
+  row["start_ms_median_file"] = Median(start_file_ms);
   row["path_frame_ms_median"] = Median(path_ms);
   row["path_frame_ms_max"] = path_ms.empty() ? 0.0 : *std::max_element(path_ms.begin(), path_ms.end());
   row["full_frame_ms_median"] = Median(full_ms);
@@ -232,9 +267,9 @@ json RunRow(const RowSpec& spec, const Settings& settings) {
 std::string Table(const json& rows) {
   std::ostringstream out;
   out << "| row | vertices | targets | build s | path ms/target | samples/target | max certified error | "
-         "uncertified | path MB | rig MB w/o paths | resident MB | restart: build + first frame s | path frame ms "
+         "uncertified | path MB | rig MB w/o paths | resident MB | restart: resident MB / path MB held / in file | restart: build + first frame s | start ms, paths held / in file | path frame ms "
          "median / max | full solve ms median / max | speed-up | local | share solved | accuracy |\n";
-  out << "| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | "
+  out << "| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | "
          "---: | ---: | ---: |\n";
   for (const json& r : rows) {
     if (r.contains("skipped")) {
@@ -245,14 +280,16 @@ std::string Table(const json& rows) {
     double path_ms_sum = 0.0;
     for (const auto& p : r["paths"]) path_ms_sum += p["ms"].get<double>();
     out << fmt::format(
-        "| {} | {} | {} | {:.1f} | {:.0f} | {:.1f} | {:.1e} | {} | {:.1f} | {:.1f} | {:.0f} | {:.2f} | {:.1f} / {:.1f} | "
+        "| {} | {} | {} | {:.1f} | {:.0f} | {:.1f} | {:.1e} | {} | {:.1f} | {:.1f} | {:.0f} | {:.0f} / {:.2f} / {:.1f} | {:.2f} | {:.2f} / {:.2f} | {:.1f} / {:.1f} | "
         "{:.0f} / {:.0f} | {:.0f}x | {}/{} | {:.3f} | {:.1e} |\n",
         r["row"].get<std::string>(), r["vertices"].get<int>(), r["targets"].get<int>(),
         r["build_ms"].get<double>() / 1000.0, path_ms_sum / with_paths,
         static_cast<double>(r["path_samples"].get<int>()) / with_paths, r["path_max_error"].get<double>(),
         r["uncertified_intervals"].get<int>(), r["path_mb"].get<double>(), r["rig_mb_without_paths"].get<double>(),
-        r.value("rig_resident_mb", 0.0),
-        (r.value("reload_ms", 0.0) + r.value("reload_first_frame_ms", 0.0)) / 1000.0, r["path_frame_ms_median"].get<double>(),
+        r.value("rig_resident_mb", 0.0), r.value("reload_resident_mb", 0.0), r.value("reload_path_mb_held", 0.0),
+        r.value("reload_path_mb_in_file", 0.0),
+        (r.value("reload_ms", 0.0) + r.value("reload_first_frame_ms", 0.0)) / 1000.0,
+        r.value("start_ms_median_memory", 0.0), r.value("start_ms_median_file", 0.0), r["path_frame_ms_median"].get<double>(),
         r["path_frame_ms_max"].get<double>(), r["full_frame_ms_median"].get<double>(),
         r["full_frame_ms_max"].get<double>(), r["speedup_median"].get<double>(), r["frames_local"].get<int>(),
         r["frames"].get<int>(), r["share_median"].get<double>(), r["accuracy_max"].get<double>());

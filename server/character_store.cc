@@ -12,10 +12,12 @@
 #include <cstring>
 #include <filesystem>
 #include <future>
+#include <memory>
 #include <fmt/format.h>
 #include <fstream>
 #include <random>
 #include <unordered_set>
+#include <vector>
 
 #include "springblend/error.h"
 #include "status.h"
@@ -114,9 +116,28 @@ bool ReadExactly(std::istream& in, std::uint64_t n, std::string* out) {
   return static_cast<bool>(in.read(out->data(), static_cast<std::streamsize>(n)));
 }
 
-// A cache file's parts, each checked against its checksum; false (and why) when the file is not whole. Read
-// part by part, so the precomputed paths (possibly the larger part) are held once.
-bool ReadCacheFile(std::istream& in, std::string* payload, std::optional<std::string>* precomputed, std::string* why) {
+// SHA-256 of the next n bytes of `in`, read in pieces (none kept); empty when they cannot be read.
+std::string StreamSha256(std::istream& in, std::uint64_t n) {
+  std::unique_ptr<EVP_MD_CTX, decltype(&EVP_MD_CTX_free)> context(EVP_MD_CTX_new(), EVP_MD_CTX_free);
+  if (!context || EVP_DigestInit_ex(context.get(), EVP_sha256(), nullptr) != 1) return {};
+  std::vector<char> piece(1 << 20);
+  while (n > 0) {
+    const std::uint64_t take = std::min<std::uint64_t>(n, piece.size());
+    if (!in.read(piece.data(), static_cast<std::streamsize>(take))) return {};
+    EVP_DigestUpdate(context.get(), piece.data(), take);
+    n -= take;
+  }
+  unsigned char digest[EVP_MAX_MD_SIZE];
+  unsigned int length = 0;
+  if (EVP_DigestFinal_ex(context.get(), digest, &length) != 1) return {};
+  return std::string(reinterpret_cast<const char*>(digest), length);
+}
+
+// A cache file's parts, each checked against its checksum; false (and why) when the file is not whole. The
+// precomputed paths (possibly hundreds of megabytes) are checked as they are read and not kept: *precomputed
+// says where they are, for the rig to read its samples from the file as frames need them.
+bool ReadCacheFile(std::istream& in, std::string* payload, std::optional<CharacterStore::FilePart>* precomputed,
+                   std::string* why) {
   in.seekg(0, std::ios::end);
   const std::uint64_t size = static_cast<std::uint64_t>(std::max<std::streamoff>(0, in.tellg()));
   in.seekg(0);
@@ -140,13 +161,13 @@ bool ReadCacheFile(std::istream& in, std::string* payload, std::optional<std::st
     return false;
   }
   if (version == 1) return true;
-  std::string bytes;
-  if (!ReadExactly(in, kDigestBytes, &digest) || !ReadExactly(in, size - offset - length - kDigestBytes, &bytes) ||
-      Sha256(bytes) != digest) {
+  const std::uint64_t part_size = size - offset - length - kDigestBytes;
+  if (!ReadExactly(in, kDigestBytes, &digest) || StreamSha256(in, part_size) != digest) {
     *why = "the precomputed paths' checksum does not match";
     return false;
   }
-  *precomputed = std::move(bytes);
+  *precomputed = CharacterStore::FilePart{static_cast<std::int64_t>(size - part_size),
+                                          static_cast<std::int64_t>(part_size)};
   return true;
 }
 
@@ -303,8 +324,9 @@ std::uint64_t RandomSuffix() {
 
 std::int64_t EstimateBytes(const Rig& rig) {
   const std::int64_t n = rig.num_vertices(), m = rig.num_springs(), shapes = rig.num_shapes() + 1;
+  // The target paths held in memory count (those left in a cache file do not: RigSummary::path_file_bytes).
   return 24 * n * shapes * 2 + m * (9 + 8 * shapes) + rig.summary().hessian_nonzeros * 16 +
-         rig.summary().faces * 12LL * shapes;
+         rig.summary().faces * 12LL * shapes + rig.summary().path_bytes;
 }
 
 }  // namespace
@@ -471,9 +493,9 @@ std::string CharacterStore::PathOf(const std::string& id) const {
   return (std::filesystem::path(options_.directory) / (id + ".sbchar")).string();
 }
 
-void CharacterStore::WriteFile(const std::string& id, const std::string& payload,
-                               const std::string& precomputed) const {
-  if (options_.directory.empty()) return;
+std::optional<PrecomputedLocation> CharacterStore::WriteFile(const std::string& id, const std::string& payload,
+                                                             const std::string& precomputed) const {
+  if (options_.directory.empty()) return std::nullopt;
   // Atomic: a uniquely named temporary file, flushed to disk, then renamed over the final name. Readers see
   // the whole file or none; a crash leaves at most a temporary file, which is never read, and which the next
   // start removes (RemoveStaleTemporaries). The writer holds a lock on its temporary until the rename, so a
@@ -490,7 +512,7 @@ void CharacterStore::WriteFile(const std::string& id, const std::string& payload
       ++write_failures_;
       spdlog::warn("cache file {} not written: cannot create {} ({}); the character is served from memory only",
                    path, temporary, std::strerror(errno));
-      return;
+      return std::nullopt;
     }
     // A starting replica may have opened the new file in the moment before the lock: it then holds the lock
     // or has already unlinked the file. Either way, start over under another name. (A file system without
@@ -502,7 +524,7 @@ void CharacterStore::WriteFile(const std::string& id, const std::string& payload
       fd = -1;
     }
   }
-  if (fd < 0) return;
+  if (fd < 0) return std::nullopt;
   const std::uint64_t length = payload.size();
   std::string header(kFileMagic, sizeof(kFileMagic));
   header += Sha256(payload);
@@ -515,8 +537,12 @@ void CharacterStore::WriteFile(const std::string& id, const std::string& payload
     spdlog::warn("cache file {} not written ({}); the character is served from memory only", path,
                  std::strerror(errno));
     ::unlink(temporary.c_str());
+    ::close(fd);
+    return std::nullopt;
   }
   ::close(fd);  // releases the lock, after the rename
+  return PrecomputedLocation{path, static_cast<std::int64_t>(header.size() + payload.size() + kDigestBytes),
+                             static_cast<std::int64_t>(precomputed.size())};
 }
 
 CharacterStore::Cleanup CharacterStore::RemoveStaleTemporaries() {
@@ -654,7 +680,17 @@ std::shared_ptr<const CharacterStore::Entry> CharacterStore::Rebuild(const std::
   const std::string path = PathOf(id);
   if (!file.precomputed) spdlog::info("cache file {} has no precomputed paths (version 1): rebuilding them", path);
   RigBuildControl control = build;
-  control.precomputed = file.precomputed ? &*file.precomputed : nullptr;
+  if (file.precomputed) {
+    // The paths stay in the file, read as frames need them: the character's memory does not grow with its
+    // expressions. The file is replaced only by renaming, so the one opened keeps what was checked.
+    control.precomputed_file = PrecomputedLocation{path, file.precomputed->offset, file.precomputed->size};
+  }
+  // Paths solved here (an older file's, or ones that did not fit) are written at once and read from the file.
+  bool written = false;
+  control.persist = [&](const std::string& bytes) {
+    written = true;
+    return WriteFile(id, file.payload, bytes);
+  };
   auto entry = Build(id, file.data, control);
   const RigSummary& summary = entry->rig->summary();
   const bool unused = file.precomputed && file.data.options.target_paths && !summary.paths_loaded;
@@ -665,7 +701,7 @@ std::shared_ptr<const CharacterStore::Entry> CharacterStore::Rebuild(const std::
                : file.data.options.target_paths ? fmt::format("solved ({:.0f} ms)", summary.path_ms)
                                                  : std::string("off"));
   // Written once, so the next restart (or another replica) loads what this one had to solve.
-  if (!file.precomputed || unused) WriteFile(id, file.payload, entry->rig->SavePrecomputed());
+  if ((!file.precomputed || unused) && !written) WriteFile(id, file.payload, entry->rig->SavePrecomputed());
   std::lock_guard lock(mutex_);
   if (summary.paths_loaded) ++stats_.paths_loaded;
   if (!file.precomputed || unused) ++stats_.upgraded_files;
@@ -789,6 +825,7 @@ void CharacterStore::RunBuild(const std::shared_ptr<PendingBuild>& flight,
   std::shared_ptr<const Entry> entry;
   std::exception_ptr error;
   bool rebuilt = false;
+  bool written = false;  // this upload's cache file
   try {
     if (control.stop()) throw Error(ErrorCode::kCancelled, "the rig build was cancelled");
     if (flight->progress_.from_file) {
@@ -798,12 +835,21 @@ void CharacterStore::RunBuild(const std::shared_ptr<PendingBuild>& flight,
       }
     }
     if (!entry && data != nullptr) {
+      // The cache file is written as soon as the paths are solved, and the rig reads their samples from it
+      // (RigBuildControl::persist): an uploaded character holds no more memory than a restarted one.
+      const std::string payload = Serialize(*data);
+      control.persist = [&](const std::string& bytes) {
+        written = true;
+        return WriteFile(id, payload, bytes);
+      };
       entry = Build(id, *data, control);  // throws Error for bad meshes, or when stopped; nothing is stored then
-      WriteFile(id, Serialize(*data), entry->rig->SavePrecomputed());
+      if (!written) WriteFile(id, payload, entry->rig->SavePrecomputed());
     }
   } catch (...) {
     error = std::current_exception();
   }
+  // A build that failed after its file was written keeps nothing.
+  if (error && written && !rebuilt && !options_.directory.empty()) RemoveCacheFile(PathOf(id));
   const bool cancelled = error && IsCancelled(error);
   if (cancelled) spdlog::info("the build of {} was stopped: nothing kept", id.substr(0, 12));
   bool deleted = false;

@@ -87,6 +87,11 @@ struct StoreStats {
 
 class CharacterStore {
  public:
+  // A part of a cache file: bytes [offset, offset + size).
+  struct FilePart {
+    std::int64_t offset = 0;
+    std::int64_t size = 0;
+  };
   struct Entry {
     std::string id;
     std::string name;
@@ -160,7 +165,7 @@ class CharacterStore {
   struct CacheFile {
     std::string payload;
     CharacterData data;  // the payload read
-    std::optional<std::string> precomputed;
+    std::optional<FilePart> precomputed;  // where the file's precomputed paths are (checked); none in version 1
   };
   std::shared_ptr<const Entry> Build(const std::string& id, const CharacterData& data, const RigBuildControl& control);
   // The rig of a cache file, its paths loaded when the file has them; rewrites a file whose paths were
@@ -176,7 +181,9 @@ class CharacterStore {
   bool Abandoned(const std::shared_ptr<PendingBuild>& flight);
   void Insert(std::shared_ptr<const Entry> entry);  // caller holds mutex_
   std::string PathOf(const std::string& id) const;
-  void WriteFile(const std::string& id, const std::string& payload, const std::string& precomputed) const;
+  // Where the precomputed part landed (for the rig to read its samples from), nullopt when not written.
+  std::optional<PrecomputedLocation> WriteFile(const std::string& id, const std::string& payload,
+                                               const std::string& precomputed) const;
   // The checked parts of the cache file; nullopt when there is none, or it is corrupt (then it is removed).
   std::optional<CacheFile> ReadFile(const std::string& id);
 

@@ -434,6 +434,7 @@ v1::Character ToProto(const CharacterStore::Entry& entry, bool cache_hit) {
   out->set_path_max_error(s.path_max_error);
   out->set_path_ms(s.path_ms);
   out->set_path_bytes(static_cast<std::uint64_t>(s.path_bytes));
+  out->set_path_file_bytes(static_cast<std::uint64_t>(s.path_file_bytes));
   out->set_rig_bytes(static_cast<std::uint64_t>(s.rig_bytes));
   return c;
 }

@@ -319,6 +319,7 @@ int RunDescribe(const RemoteArgs& args) {
   out["uncertified_path_intervals"] = s.uncertified_path_intervals();
   out["path_max_error"] = s.path_max_error();
   out["path_bytes"] = s.path_bytes();
+  out["path_file_bytes"] = s.path_file_bytes();
   out["rig_bytes"] = s.rig_bytes();
   if (c.state() == v1::CHARACTER_STATE_BUILDING) {
     const v1::BuildProgress& p = c.build();

@@ -1,9 +1,18 @@
 #include "path_field.h"
 
+#include <fcntl.h>
+#include <fmt/format.h>
+#include <sys/stat.h>
+#include <unistd.h>
+
 #include <algorithm>
+#include <cerrno>
 #include <cmath>
 #include <cstring>
 #include <limits>
+#include <vector>
+
+#include "springblend/error.h"
 
 namespace springblend::internal {
 namespace {
@@ -14,13 +23,58 @@ constexpr double kLowMax = 2147483647.0;
 
 }  // namespace
 
+std::shared_ptr<const PathFile> PathFile::Open(const std::string& path) {
+  const int fd = ::open(path.c_str(), O_RDONLY | O_CLOEXEC);
+  if (fd < 0) throw Error(ErrorCode::kInvalidInput, fmt::format("cannot open '{}': {}", path, std::strerror(errno)));
+  struct stat st {};
+  if (::fstat(fd, &st) != 0 || !S_ISREG(st.st_mode)) {
+    ::close(fd);
+    throw Error(ErrorCode::kInvalidInput, fmt::format("'{}' is not a regular file", path));
+  }
+  return std::shared_ptr<const PathFile>(new PathFile(fd, path, static_cast<std::int64_t>(st.st_size)));
+}
+
+PathFile::~PathFile() {
+  if (fd_ >= 0) ::close(fd_);
+}
+
+void PathFile::Read(std::int64_t offset, size_t n, void* out) const {
+  auto* bytes = static_cast<char*>(out);
+  size_t done = 0;
+  while (done < n) {
+    const ssize_t got = ::pread(fd_, bytes + done, n - done, static_cast<off_t>(offset + done));
+    if (got < 0 && errno == EINTR) continue;
+    if (got <= 0) {
+      throw Error(ErrorCode::kInternal,
+                  fmt::format("target paths file '{}': cannot read {} bytes at {} ({})", path_, n - done,
+                              offset + static_cast<std::int64_t>(done),
+                              got < 0 ? std::strerror(errno) : "the file was cut short after it was opened"));
+    }
+    done += static_cast<size_t>(got);
+  }
+}
+
+PathField PathField::Stored(std::shared_ptr<const PathFile> file, std::int64_t at, Eigen::Index rows, int words,
+                            double step) {
+  PathField f;
+  f.file_ = std::move(file);
+  f.at_ = at;
+  f.rows_ = rows;
+  f.words_ = words;
+  f.step_ = step;
+  return f;
+}
+
 PathField::PathField(const Eigen::MatrixXd& values, int words) {
   const Eigen::Index rows = values.rows();
+  rows_ = rows;
+  words_ = rows > 0 ? (words < 2 ? 1 : 2) : 0;
   high_.resize(rows, 3);
   const double largest = values.size() > 0 ? values.cwiseAbs().maxCoeff() : 0.0;
   step_ = largest > 0.0 && std::isfinite(largest) ? largest / kHighSteps : 0.0;
   if (step_ == 0.0) {
     high_.setZero();
+    words_ = rows > 0 ? 1 : 0;
     return;
   }
   const Eigen::ArrayXXd scaled = values.array() / step_;
@@ -35,10 +89,42 @@ std::int64_t PathField::bytes() const {
   return static_cast<std::int64_t>(sizeof(std::int32_t) * (high_.size() + low_.size()) + sizeof(double));
 }
 
+std::int64_t PathField::stored_bytes() const {
+  return stored() ? static_cast<std::int64_t>(sizeof(std::int32_t) * 3 * rows_ * words_) : 0;
+}
+
+namespace {
+
+// A stored field's words, read into a buffer of the calling thread's (one per word, reused: a frame reads a few
+// fields at a time, each used before the next is read).
+const std::int32_t* ReadWords(const PathFile& file, std::int64_t at, Eigen::Index rows, int which) {
+  thread_local std::vector<std::int32_t> buffers[2];
+  std::vector<std::int32_t>& buffer = buffers[which];
+  buffer.resize(3 * static_cast<size_t>(rows));
+  file.Read(at, sizeof(std::int32_t) * buffer.size(), buffer.data());
+  return buffer.data();
+}
+
+}  // namespace
+
+const std::int32_t* PathField::HighWords() const {
+  return stored() ? ReadWords(*file_, at_, rows_, 0) : high_.data();
+}
+
+const std::int32_t* PathField::LowWords() const {
+  if (words_ < 2) return nullptr;
+  return stored() ? ReadWords(*file_, at_ + static_cast<std::int64_t>(sizeof(std::int32_t) * 3 * rows_), rows_, 1)
+                  : low_.data();
+}
+
 void PathField::AddTo(double weight, Eigen::MatrixXd* out) const {
   if (empty() || weight == 0.0) return;
-  *out += (weight * step_) * high_.cast<double>();
-  if (low_.size() > 0) *out += (weight * step_ / kLowScale) * low_.cast<double>();
+  const Eigen::Map<const Words> high(HighWords(), rows_, 3);
+  *out += (weight * step_) * high.cast<double>();
+  if (words_ == 2) {
+    const Eigen::Map<const Words> low(LowWords(), rows_, 3);
+    *out += (weight * step_ / kLowScale) * low.cast<double>();
+  }
 }
 
 Eigen::MatrixXd PathField::Decode() const {
@@ -50,8 +136,16 @@ Eigen::MatrixXd PathField::Decode() const {
 void PathField::AppendTo(std::string* out) const {
   out->append(reinterpret_cast<const char*>(&step_), sizeof(step_));
   out->push_back(static_cast<char>(words()));
-  out->append(reinterpret_cast<const char*>(high_.data()), sizeof(std::int32_t) * static_cast<size_t>(high_.size()));
-  out->append(reinterpret_cast<const char*>(low_.data()), sizeof(std::int32_t) * static_cast<size_t>(low_.size()));
+  const size_t words_size = sizeof(std::int32_t) * 3 * static_cast<size_t>(rows_);
+  if (empty()) return;
+  out->append(reinterpret_cast<const char*>(HighWords()), words_size);
+  if (words_ == 2) out->append(reinterpret_cast<const char*>(LowWords()), words_size);
+}
+
+bool PathField::ParseHeader(const char* header, double* step, int* words) {
+  std::memcpy(step, header, sizeof(double));
+  *words = static_cast<std::uint8_t>(header[sizeof(double)]);
+  return std::isfinite(*step) && *step >= 0.0 && *words >= 1 && *words <= 2;
 }
 
 bool PathField::Parse(const std::string& in, size_t* at, Eigen::Index rows, PathField* field) {
@@ -59,13 +153,15 @@ bool PathField::Parse(const std::string& in, size_t* at, Eigen::Index rows, Path
   const size_t words_size = sizeof(std::int32_t) * 3 * static_cast<size_t>(rows);
   if (in.size() < *at || in.size() - *at < sizeof(double) + 1) return false;
   double step = 0.0;
-  std::memcpy(&step, in.data() + *at, sizeof(step));
-  const auto words = static_cast<std::uint8_t>(in[*at + sizeof(step)]);
-  *at += sizeof(step) + 1;
-  if (!(std::isfinite(step) && step >= 0.0) || words < 1 || words > 2) return false;
-  if ((in.size() - *at) / words_size < words) return false;
+  int words = 0;
+  const bool valid = ParseHeader(in.data() + *at, &step, &words);
+  *at += kHeaderBytes;
+  if (!valid) return false;
+  if ((in.size() - *at) / words_size < static_cast<size_t>(words)) return false;
   PathField f;
   f.step_ = step;
+  f.rows_ = rows;
+  f.words_ = words;
   f.high_.resize(rows, 3);
   std::memcpy(f.high_.data(), in.data() + *at, words_size);
   *at += words_size;

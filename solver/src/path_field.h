@@ -16,9 +16,34 @@
 
 #include <Eigen/Core>
 #include <cstdint>
+#include <memory>
 #include <string>
 
 namespace springblend::internal {
+
+// A read-only file that holds fields' words (a cache file the paths were saved to), read with pread as frames
+// need them, so a rig's resident memory does not grow with its paths. The file must not change while it is open
+// (the server's cache replaces files by renaming, so an open one keeps its contents).
+class PathFile {
+ public:
+  // Throws Error(kInvalidInput) naming the file when it cannot be opened.
+  static std::shared_ptr<const PathFile> Open(const std::string& path);
+  ~PathFile();
+  PathFile(const PathFile&) = delete;
+  PathFile& operator=(const PathFile&) = delete;
+
+  const std::string& path() const { return path_; }
+  std::int64_t size() const { return size_; }
+  // n bytes at `offset` into out; throws Error(kInternal) naming the file and the offset when they cannot be read
+  // (a file cut short after it was opened).
+  void Read(std::int64_t offset, size_t n, void* out) const;
+
+ private:
+  PathFile(int fd, std::string path, std::int64_t size) : fd_(fd), path_(std::move(path)), size_(size) {}
+  int fd_ = -1;
+  std::string path_;
+  std::int64_t size_ = 0;
+};
 
 class PathField {
  public:
@@ -28,11 +53,18 @@ class PathField {
   // `values` #vertices by 3 (finite); `words` 1 or 2.
   explicit PathField(const Eigen::MatrixXd& values, int words = 1);
 
-  bool empty() const { return high_.size() == 0; }
-  Eigen::Index rows() const { return high_.rows(); }
-  int words() const { return empty() ? 0 : low_.size() > 0 ? 2 : 1; }
+  // A field whose words are in `file` at `at` (as AppendTo wrote them after the step and the word count), read
+  // when it is used.
+  static PathField Stored(std::shared_ptr<const PathFile> file, std::int64_t at, Eigen::Index rows, int words,
+                          double step);
+
+  bool empty() const { return rows_ == 0; }
+  Eigen::Index rows() const { return rows_; }
+  int words() const { return words_; }
   double step() const { return step_; }  // value of the first word's unit
-  std::int64_t bytes() const;  // 0 when empty
+  bool stored() const { return file_ != nullptr; }
+  std::int64_t bytes() const;         // memory it holds (a stored field: its step only); 0 when empty
+  std::int64_t stored_bytes() const;  // its words in a file; 0 when held in memory
 
   // out += weight * field (out #vertices by 3).
   void AddTo(double weight, Eigen::MatrixXd* out) const;
@@ -42,11 +74,22 @@ class PathField {
   void AppendTo(std::string* out) const;
   // Reads one field of `rows` rows at *at; false (and *at unspecified) when the bytes are not one.
   static bool Parse(const std::string& in, size_t* at, Eigen::Index rows, PathField* field);
+  // The step and word count that begin a field (AppendTo's first 9 bytes); false when they are not valid.
+  static bool ParseHeader(const char* header, double* step, int* words);
+  static constexpr size_t kHeaderBytes = sizeof(double) + 1;
 
  private:
-  Words high_;
-  Words low_;  // empty for one word
+  // The words, from memory or read from the file into a buffer of this thread's.
+  const std::int32_t* HighWords() const;
+  const std::int32_t* LowWords() const;
+
+  Words high_;  // empty for a stored field
+  Words low_;   // empty for one word or a stored field
   double step_ = 0.0;
+  Eigen::Index rows_ = 0;
+  int words_ = 0;
+  std::shared_ptr<const PathFile> file_;  // set for a stored field
+  std::int64_t at_ = 0;                   // its first word's offset in file_
 };
 
 }  // namespace springblend::internal

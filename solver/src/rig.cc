@@ -184,8 +184,24 @@ std::shared_ptr<const Rig> RigBuilder::Build(TriangleMesh rest, std::vector<Targ
   s.rig_bytes = EstimateRigBytes(*rig);
   if (options.target_paths) {
     std::string why;
-    if (control.precomputed != nullptr) {
-      if (auto paths = internal::ParseTargetPaths(*control.precomputed, rig->num_targets(), s.vertices, &why)) {
+    // The paths at a file's location, their samples left there; nullopt and why when they are not this rig's.
+    const auto parse_file = [&](const PrecomputedLocation& at, std::string* why_not) {
+      try {
+        return internal::ParseTargetPaths(internal::PathFile::Open(at.file), at.offset, at.size, rig->num_targets(),
+                                          s.vertices, why_not);
+      } catch (const Error& e) {
+        *why_not = e.what();
+        return std::optional<std::vector<internal::TargetPath>>();
+      }
+    };
+    if (control.precomputed != nullptr || control.precomputed_file) {
+      std::optional<std::vector<internal::TargetPath>> paths;
+      if (control.precomputed != nullptr) {
+        paths = internal::ParseTargetPaths(*control.precomputed, rig->num_targets(), s.vertices, &why);
+      } else {
+        paths = parse_file(*control.precomputed_file, &why);
+      }
+      if (paths) {
         internals.paths = std::move(*paths);
         s.paths_loaded = true;
       } else {
@@ -219,6 +235,25 @@ std::shared_ptr<const Rig> RigBuilder::Build(TriangleMesh rest, std::vector<Targ
                                       "start from the best found",
                                       report.unconverged, report.samples));
       }
+      if (control.persist) {
+        // Kept in the caller's file: the samples are read from there from now on, the same bits.
+        const std::string bytes = internal::SerializeTargetPaths(internals.paths);
+        if (const std::optional<PrecomputedLocation> at = control.persist(bytes)) {
+          std::string why_not;
+          std::optional<std::vector<internal::TargetPath>> stored = parse_file(*at, &why_not);
+          if (stored && stored->size() == internals.paths.size()) {
+            for (size_t t = 0; t < stored->size(); ++t) {
+              internal::TargetPath& path = internals.paths[t];
+              if ((*stored)[t].samples() != path.samples()) continue;  // (cannot happen: the same bytes)
+              path.corrections = std::move((*stored)[t].corrections);
+              path.tangents = std::move((*stored)[t].tangents);
+            }
+          } else {
+            s.notes.push_back(fmt::format("the target paths could not be left in '{}' ({}): held in memory",
+                                          at->file, why_not.empty() ? "another rig's" : why_not));
+          }
+        }
+      }
     }
     for (size_t t = 0; t < internals.paths.size(); ++t) {
       const internal::TargetPath& path = internals.paths[t];
@@ -228,6 +263,7 @@ std::shared_ptr<const Rig> RigBuilder::Build(TriangleMesh rest, std::vector<Targ
       s.uncertified_path_intervals += path.uncertified();
       s.path_max_error = std::max(s.path_max_error, path.max_error);
       s.path_bytes += path.bytes();
+      s.path_file_bytes += path.stored_bytes();
       s.paths.push_back({rig->target_names_[t], path.samples(), path.solves, path.uncertified(), path.max_error,
                          s.paths_loaded ? 0.0 : path.build_ms});
     }

@@ -1045,6 +1045,13 @@ std::int64_t TargetPath::bytes() const {
   return total;
 }
 
+std::int64_t TargetPath::stored_bytes() const {
+  std::int64_t total = 0;
+  for (const PathField& c : corrections) total += c.stored_bytes();
+  for (const PathField& t : tangents) total += t.stored_bytes();
+  return total;
+}
+
 bool TargetChangesLengths(const Rig& rig, int target) {
   for (const auto& knot : rig.internals().controls.targets[target]) {
     if (rig.target_changes_lengths(knot.shape)) return true;
@@ -1190,25 +1197,42 @@ void Put(std::string* out, const T& value) {
   out->append(reinterpret_cast<const char*>(&value), sizeof(T));
 }
 
+// Reads the serialized paths from memory or from a file (whose fields are then left there: PathField::Stored).
 class Cursor {
  public:
-  explicit Cursor(const std::string& in) : in_(in) {}
+  explicit Cursor(const std::string& in) : in_(&in), size_(in.size()) {}
+  Cursor(std::shared_ptr<const PathFile> file, std::int64_t offset, size_t size)
+      : file_(std::move(file)), offset_(offset), size_(size) {}
   template <typename T>
   bool Get(T* value) {
-    if (sizeof(T) > in_.size() - at_) return false;
-    std::memcpy(value, in_.data() + at_, sizeof(T));
-    at_ += sizeof(T);
-    return true;
+    return GetBytes(value, sizeof(T));
   }
   bool GetBytes(void* out, size_t n) {
-    if (n > in_.size() - at_) return false;
-    if (n > 0) std::memcpy(out, in_.data() + at_, n);
+    if (n > left()) return false;
+    if (n > 0) {
+      if (in_ != nullptr) {
+        std::memcpy(out, in_->data() + at_, n);
+      } else {
+        file_->Read(offset_ + static_cast<std::int64_t>(at_), n, out);
+      }
+    }
     at_ += n;
     return true;
   }
-  size_t left() const { return in_.size() - at_; }
-  bool GetField(Eigen::Index rows, PathField* field) { return PathField::Parse(in_, &at_, rows, field); }
-  // A float field of the older versions, in fixed point.
+  size_t left() const { return size_ - at_; }
+  bool GetField(Eigen::Index rows, PathField* field) {
+    if (in_ != nullptr) return PathField::Parse(*in_, &at_, rows, field);
+    char header[PathField::kHeaderBytes];
+    double step = 0.0;
+    int words = 0;
+    if (rows <= 0 || !GetBytes(header, sizeof(header)) || !PathField::ParseHeader(header, &step, &words)) return false;
+    const size_t words_size = sizeof(std::int32_t) * 3 * static_cast<size_t>(rows);
+    if (left() / words_size < static_cast<size_t>(words)) return false;
+    *field = PathField::Stored(file_, offset_ + static_cast<std::int64_t>(at_), rows, words, step);
+    at_ += words_size * static_cast<size_t>(words);
+    return true;
+  }
+  // A float field of the older versions, in fixed point (held in memory).
   bool GetFloatField(Eigen::Index rows, PathField* field) {
     Eigen::MatrixXf f(rows, 3);
     if (!GetBytes(f.data(), sizeof(float) * 3 * static_cast<size_t>(rows)) || !f.allFinite()) return false;
@@ -1217,7 +1241,10 @@ class Cursor {
   }
 
  private:
-  const std::string& in_;
+  const std::string* in_ = nullptr;
+  std::shared_ptr<const PathFile> file_;
+  std::int64_t offset_ = 0;
+  size_t size_ = 0;
   size_t at_ = 0;
 };
 
@@ -1255,9 +1282,9 @@ std::string SerializeTargetPaths(const std::vector<TargetPath>& paths) {
   return out;
 }
 
-std::optional<std::vector<TargetPath>> ParseTargetPaths(const std::string& bytes, int targets, int vertices,
-                                                        std::string* why) {
-  Cursor in(bytes);
+namespace {
+
+std::optional<std::vector<TargetPath>> ParsePaths(Cursor& in, int targets, int vertices, std::string* why) {
   char magic[sizeof(kPathsMagic)];
   if (!in.GetBytes(magic, sizeof(magic)) || (std::memcmp(magic, kPathsMagic, sizeof(magic)) != 0 &&
                                               std::memcmp(magic, kPathsMagicV3, sizeof(magic)) != 0 &&
@@ -1332,6 +1359,26 @@ std::optional<std::vector<TargetPath>> ParseTargetPaths(const std::string& bytes
     return std::nullopt;
   }
   return paths;
+}
+
+}  // namespace
+
+std::optional<std::vector<TargetPath>> ParseTargetPaths(const std::string& bytes, int targets, int vertices,
+                                                        std::string* why) {
+  Cursor in(bytes);
+  return ParsePaths(in, targets, vertices, why);
+}
+
+std::optional<std::vector<TargetPath>> ParseTargetPaths(std::shared_ptr<const PathFile> file, std::int64_t offset,
+                                                        std::int64_t size, int targets, int vertices,
+                                                        std::string* why) {
+  if (size < 0) size = file->size() - offset;
+  if (offset < 0 || size < 0 || offset > file->size() || size > file->size() - offset) {
+    *why = fmt::format("'{}' holds {} bytes, not {} at {}", file->path(), file->size(), size, offset);
+    return std::nullopt;
+  }
+  Cursor in(std::move(file), offset, static_cast<size_t>(size));
+  return ParsePaths(in, targets, vertices, why);
 }
 
 }  // namespace springblend::internal

@@ -59,7 +59,8 @@ struct TargetPath {
   bool empty() const { return corrections.empty(); }
   int samples() const { return static_cast<int>(alphas.size()); }
   int uncertified() const;  // intervals whose check did not pass, and folds (the branch switch not counted)
-  std::int64_t bytes() const;
+  std::int64_t bytes() const;         // memory it holds
+  std::int64_t stored_bytes() const;  // its fields' words left in a file (ParseTargetPaths from a file)
 };
 
 struct TargetPathsOptions {
@@ -127,6 +128,11 @@ int RefineInPathSpan(const std::vector<TargetPath>& paths, const std::vector<dou
 // the bytes are not paths of this rig (version, target count, vertex count, sizes).
 std::string SerializeTargetPaths(const std::vector<TargetPath>& paths);
 std::optional<std::vector<TargetPath>> ParseTargetPaths(const std::string& bytes, int targets, int vertices,
+                                                        std::string* why);
+// The same bytes in `file` at [offset, offset + size) (size -1: to its end); the fixed-point fields stay in the
+// file (PathField::Stored), read when frames use them.
+std::optional<std::vector<TargetPath>> ParseTargetPaths(std::shared_ptr<const PathFile> file, std::int64_t offset,
+                                                        std::int64_t size, int targets, int vertices,
                                                         std::string* why);
 
 }  // namespace springblend::internal

@@ -111,6 +111,21 @@ TEST(CacheFile, ARestartLoadsTheTargetPathsFromTheFile) {
   ASSERT_TRUE(again);
   EXPECT_TRUE(again->rig->summary().paths_loaded);
   EXPECT_EQ(again->rig->summary().path_samples, built.path_samples);
+  // The samples stay in the file, read as frames need them, from the upload on and after a restart: the
+  // character holds their metadata only, and its memory estimate (the store's budget) is smaller by them than a
+  // memory-only store's.
+  CharacterStore memory_only({});
+  const auto held = memory_only.Put(cylinder).first;
+  const RigSummary& in_memory = held->rig->summary();
+  EXPECT_EQ(in_memory.path_file_bytes, 0);
+  EXPECT_EQ(held->rig->SavePrecomputed(), first->rig->SavePrecomputed());
+  for (const RigSummary* s : {&built, &again->rig->summary()}) {
+    EXPECT_GT(s->path_file_bytes, in_memory.path_bytes * 9 / 10);
+    EXPECT_LT(s->path_bytes, in_memory.path_bytes / 10);
+  }
+  EXPECT_LT(first->bytes, held->bytes);
+  EXPECT_EQ(again->bytes, first->bytes);
+  EXPECT_EQ(Solved(held->rig), Solved(first->rig));
   EXPECT_EQ(again->rig->SavePrecomputed(), first->rig->SavePrecomputed());
   EXPECT_EQ(Solved(again->rig), Solved(first->rig));
   EXPECT_EQ(restarted.stats().paths_loaded, 1);

@@ -427,6 +427,8 @@ TEST_F(InProcessServerTest, ARestartedServerLoadsThePathsAndServesTheSameFrames)
   EXPECT_GT(built.path_bytes(), 0u);
   EXPECT_GT(built.rig_bytes(), 0u);
   EXPECT_GE(built.path_max_error(), 0.0);
+  // The samples were written to the cache file as soon as they were solved, and are read from there.
+  EXPECT_GT(built.path_file_bytes(), 20 * built.path_bytes());
   std::vector<v1::SolvedFrame> before, after;
   client_->Solve(Sweep(first.id(), 5), [&](const v1::SolvedFrame& f) { before.push_back(f); });
   client_.reset();
@@ -438,6 +440,8 @@ TEST_F(InProcessServerTest, ARestartedServerLoadsThePathsAndServesTheSameFrames)
   EXPECT_EQ(again.summary().path_samples(), built.path_samples());
   EXPECT_EQ(again.summary().uncertified_path_intervals(), built.uncertified_path_intervals());
   EXPECT_EQ(again.summary().path_ms(), 0.0) << "nothing solved";
+  EXPECT_EQ(again.summary().path_file_bytes(), built.path_file_bytes());
+  EXPECT_EQ(again.summary().path_bytes(), built.path_bytes());
   client_->Solve(Sweep(first.id(), 5), [&](const v1::SolvedFrame& f) { after.push_back(f); });
   ASSERT_EQ(before.size(), 5u);
   ASSERT_EQ(after.size(), 5u);

@@ -7,6 +7,8 @@
 #include <gtest/gtest.h>
 
 #include <atomic>
+#include <filesystem>
+#include <fstream>
 #include <chrono>
 #include <functional>
 #include <random>
@@ -545,6 +547,91 @@ TEST(TargetPaths, BuildIsDeterministicAndPersists) {
   const std::string foreign = other->SavePrecomputed();
   control.precomputed = &foreign;
   EXPECT_FALSE(Rig::Build(LoadMesh(DataPath("cylinder/cylinder.obj")), specs, {}, control)->summary().paths_loaded);
+}
+
+// Paths read from a file (a cache file's part, RigBuildControl::precomputed_file) stay there: the rig holds only
+// their metadata, and its frames are the in-memory rig's to the bit.
+TEST(TargetPaths, PathsLeftInAFileGiveTheSameFramesAndAreNotHeld) {
+  const auto& rig = SharedCylinder();
+  const std::string bytes = rig->SavePrecomputed();
+  testing::TempDir dir;
+  const std::string file = (dir.path() / "character.cache").string();
+  const std::string before(37, 'h'), after(11, 't');  // the paths as one part of a larger file
+  {
+    std::ofstream out(file, std::ios::binary);
+    out << before << bytes << after;
+  }
+  RigBuildControl control;
+  control.precomputed_file =
+      PrecomputedLocation{file, static_cast<std::int64_t>(before.size()), static_cast<std::int64_t>(bytes.size())};
+  const std::vector<TargetSpec> specs = CylinderSpecs();
+  const auto loaded = Rig::Build(LoadMesh(DataPath("cylinder/cylinder.obj")), specs, {}, control);
+  const RigSummary& s = loaded->summary();
+  ASSERT_TRUE(s.paths_loaded) << ::testing::PrintToString(s.notes);
+  EXPECT_EQ(s.path_samples, rig->summary().path_samples);
+  EXPECT_EQ(rig->summary().path_file_bytes, 0);
+  EXPECT_GT(s.path_file_bytes, rig->summary().path_bytes * 9 / 10) << "the samples' words are in the file";
+  EXPECT_LT(s.path_bytes, rig->summary().path_bytes / 10) << "the rig holds only the paths' metadata";
+  EXPECT_TRUE(loaded->SavePrecomputed() == bytes);
+
+  Solver a(rig), b(loaded);
+  for (const std::vector<double>& w : std::vector<std::vector<double>>{
+           {0.3, 0.0}, {0.5, 0.0}, {0.9, 0.0}, {-0.2, 0.0}, {1.2, 0.0}, {0.0, 0.7}, {0.6, 0.4}}) {
+    Points x, y;
+    const SolveSummary sa = a.Solve(Frame{w}, &x);
+    const SolveSummary sb = b.Solve(Frame{w}, &y);
+    ASSERT_TRUE(sa.converged() && sb.converged()) << sa.message << " / " << sb.message;
+    EXPECT_TRUE(x == y) << "frames differ at " << w[0] << ", " << w[1];  // byte-identical
+    EXPECT_TRUE(a.Start(w) == b.Start(w)) << "previews differ";
+  }
+
+  // The whole file is not paths (without the offset and size); a missing file: solved again, with a note.
+  RigBuildControl whole;
+  whole.precomputed_file = PrecomputedLocation{file};
+  const auto rebuilt = Rig::Build(LoadMesh(DataPath("cylinder/cylinder.obj")), specs, {}, whole);
+  EXPECT_FALSE(rebuilt->summary().paths_loaded);
+  EXPECT_THAT(rebuilt->summary().notes, ::testing::Contains(HasSubstr("precomputed target paths were not used")));
+  RigBuildControl missing;
+  missing.precomputed_file = PrecomputedLocation{(dir.path() / "absent.cache").string()};
+  // Solved again, and kept where the caller writes them (as the server's cache file): the same frames, read from
+  // there.
+  const std::string persisted = (dir.path() / "persisted.cache").string();
+  int persist_calls = 0;
+  missing.persist = [&](const std::string& solved_bytes) {
+    ++persist_calls;
+    EXPECT_TRUE(solved_bytes == bytes);
+    std::ofstream(persisted, std::ios::binary) << before << solved_bytes;
+    return std::optional<PrecomputedLocation>(PrecomputedLocation{persisted, static_cast<std::int64_t>(before.size())});
+  };
+  const auto solved = Rig::Build(LoadMesh(DataPath("cylinder/cylinder.obj")), specs, {}, missing);
+  EXPECT_FALSE(solved->summary().paths_loaded);
+  EXPECT_THAT(solved->summary().notes, ::testing::Contains(HasSubstr("absent.cache")));
+  EXPECT_EQ(persist_calls, 1);
+  EXPECT_TRUE(solved->SavePrecomputed() == bytes);
+  EXPECT_EQ(solved->summary().path_file_bytes, s.path_file_bytes);
+  EXPECT_EQ(solved->summary().path_bytes, s.path_bytes);
+  {
+    Solver d(solved);
+    Points x, y;
+    ASSERT_TRUE(d.Solve(Frame{{0.9, 0.0}}, &x).converged());
+    a.Solve(Frame{{0.9, 0.0}}, &y);
+    EXPECT_TRUE(x == y) << "a frame from the persisted paths differs";
+  }
+  // A caller that could not keep them (nullopt): held in memory, as without the callback.
+  RigBuildControl unkept;
+  unkept.persist = [](const std::string&) { return std::optional<PrecomputedLocation>(); };
+  const auto held = Rig::Build(LoadMesh(DataPath("cylinder/cylinder.obj")), specs, {}, unkept);
+  EXPECT_EQ(held->summary().path_file_bytes, 0);
+  EXPECT_EQ(held->summary().path_bytes, rig->summary().path_bytes);
+
+  // A file cut short in place after the rig opened it (what the cache never does): a frame that needs a lost
+  // sample fails with an error naming the file, not with garbage.
+  std::filesystem::resize_file(file, before.size() + 64);
+  Solver c(loaded);
+  Points z;
+  const Error e = CatchError([&] { c.Solve(Frame{{0.9, 0.0}}, &z); });
+  EXPECT_EQ(e.code(), ErrorCode::kInternal);
+  EXPECT_THAT(e.what(), HasSubstr("character.cache"));
 }
 
 TEST(TargetPaths, AStopCheckEndsTheBuildWithinASecond) {

@@ -155,6 +155,8 @@ struct RigSummary {
   double path_ms = 0.0;              // time spent on the paths (part of precompute_ms)
   bool paths_loaded = false;         // the paths came from RigBuildControl::precomputed, not solved
   std::int64_t path_bytes = 0;       // memory the paths hold
+  // Their samples left in RigBuildControl::precomputed_file, read as frames need them (not resident).
+  std::int64_t path_file_bytes = 0;
   std::int64_t rig_bytes = 0;        // memory the rig holds without its paths (estimate: arrays it keeps)
   struct TargetPathSummary {
     std::string target;
@@ -206,6 +208,13 @@ struct RigBuildProgress {
   int samples_done = 0;         // path samples kept by the targets done
   double elapsed_ms = 0.0;
 };
+// Where Rig::SavePrecomputed's bytes are in a file: [offset, offset + size), size -1 for the rest of the file.
+struct PrecomputedLocation {
+  std::string file;
+  std::int64_t offset = 0;
+  std::int64_t size = -1;
+};
+
 struct RigBuildControl {
   // Asked between path samples and Newton iterations; when it says true the build ends with
   // Error(kCancelled). Called on the building threads, possibly concurrently.
@@ -216,6 +225,16 @@ struct RigBuildControl {
   // than solved. Bytes that do not fit this rig (another version, target or vertex count) are not used: the
   // paths are solved and a note says why.
   const std::string* precomputed = nullptr;
+  // The same bytes in a file instead (when precomputed is null). The paths' samples then stay in the file, read
+  // as frames need them (a few per moved target), so the rig's resident memory does not grow with its expressions
+  // (RigSummary::path_bytes, path_file_bytes). The file is opened once; it must not be changed in place while the
+  // rig lives (replace it by renaming, as the server's cache does). A file that cannot be opened or read is
+  // treated as bytes that do not fit: the paths are solved and a note says why.
+  std::optional<PrecomputedLocation> precomputed_file;
+  // Called once the paths are solved (not when loaded) with Rig::SavePrecomputed's bytes: a caller that keeps
+  // them in a file (the server's cache file) writes them there and says where; the rig then leaves its samples
+  // in that file as with precomputed_file. Nullopt (or no callback) keeps them in memory.
+  std::function<std::optional<PrecomputedLocation>(const std::string& bytes)> persist;
 };
 
 class Rig {
