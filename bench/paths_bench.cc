@@ -45,20 +45,27 @@ double MsSince(Clock::time_point start) {
   return std::chrono::duration<double, std::milli>(Clock::now() - start).count();
 }
 
-std::optional<double> ResidentMb() {
+// A line of /proc/self/status in MB (VmRSS: resident now; VmHWM: its high-water mark).
+std::optional<double> StatusMb(const std::string& key) {
   std::ifstream in("/proc/self/status");
   std::string line;
   while (std::getline(in, line)) {
-    if (line.rfind("VmRSS:", 0) == 0) return std::stod(line.substr(6)) / 1024.0;
+    if (line.rfind(key + ":", 0) == 0) return std::stod(line.substr(key.size() + 1)) / 1024.0;
   }
   return std::nullopt;
 }
+std::optional<double> ResidentMb() { return StatusMb("VmRSS"); }
+// Resets the resident set's high-water mark (VmHWM) to the resident set now; false where the kernel does not.
+bool ResetPeakRss() { return static_cast<bool>(std::ofstream("/proc/self/clear_refs") << "5" << std::flush); }
 
 struct RowSpec {
   std::string name;
   fs::path dir;
   std::string rest;
   std::vector<std::string> targets;
+  // Besides them, this many targets made of two of them summed at 0.6 each (pairs in a fixed order): a stand-in
+  // for a production face's count of expressions.
+  int pairs = 0;
 };
 
 std::vector<RowSpec> AllRows(const fs::path& repo, const fs::path& shared) {
@@ -78,6 +85,15 @@ std::vector<RowSpec> AllRows(const fs::path& repo, const fs::path& shared) {
        {"browDown_L.obj", "browDown_R.obj", "browInnerUp_L.obj", "browInnerUp_R.obj", "cheekPuff_L.obj",
         "cheekPuff_R.obj", "eyeBlink_L.obj", "eyeBlink_R.obj", "jawOpen.obj", "mouthClose.obj", "mouthFunnel.obj",
         "mouthPucker.obj", "mouthSmile_L.obj", "mouthSmile_R.obj", "noseSneer_L.obj", "noseSneer_R.obj"}},
+      // 52 expressions, as a production face has (ARKit's count): the 16 and 36 pairs of them (no such face is at
+      // hand); a build of about ten minutes.
+      {"face-52",
+       shared / "face6706",
+       "generic_neutral_mesh.obj",
+       {"browDown_L.obj", "browDown_R.obj", "browInnerUp_L.obj", "browInnerUp_R.obj", "cheekPuff_L.obj",
+        "cheekPuff_R.obj", "eyeBlink_L.obj", "eyeBlink_R.obj", "jawOpen.obj", "mouthClose.obj", "mouthFunnel.obj",
+        "mouthPucker.obj", "mouthSmile_L.obj", "mouthSmile_R.obj", "noseSneer_L.obj", "noseSneer_R.obj"},
+       36},
       {"horse", shared / "horse", "horse-reference.obj", {"horse-01.obj"}},
       {"cat", shared / "cat", "cat-reference.obj", {"cat-01.obj"}},
   };
@@ -103,10 +119,11 @@ struct Settings {
   int targets_measured = 2;  // frames are measured on the first this many targets of a row
   bool reference = true;
   bool span = true;  // SolveOptions::path_span_step for the path frames
+  bool spool = false;  // RigBuildControl::spool_directory (the output directory) for the builds
   RigOptions rig;  // the paths' options (--path-*)
 };
 
-// The row's targets, each named after its mesh.
+// The row's targets, each named after its mesh (a pair: "<a>+<b>").
 std::vector<TargetSpec> TargetsOf(const RowSpec& spec) {
   std::vector<TargetSpec> targets;
   for (const auto& t : spec.targets) {
@@ -114,6 +131,20 @@ std::vector<TargetSpec> TargetsOf(const RowSpec& spec) {
     target.mesh = LoadMesh((spec.dir / t).string());
     target.name = target.mesh.name;
     targets.push_back(std::move(target));
+  }
+  const int n = static_cast<int>(spec.targets.size());
+  if (spec.pairs > 0) {
+    const TriangleMesh rest = LoadMesh((spec.dir / spec.rest).string());
+    for (int k = 0; k < spec.pairs; ++k) {
+      const int a = k % n, b = (a + 1 + k / n) % n;  // distinct pairs while pairs < n (n - 1) / 2
+      TargetSpec target;
+      target.mesh = rest;
+      target.mesh.vertices = rest.vertices + 0.6 * (targets[a].mesh.vertices - rest.vertices) +
+                             0.6 * (targets[b].mesh.vertices - rest.vertices);
+      target.name = fmt::format("{}+{}", targets[a].name, targets[b].name);
+      target.mesh.name = target.name;
+      targets.push_back(std::move(target));
+    }
   }
   return targets;
 }
@@ -125,12 +156,22 @@ json RunRow(const RowSpec& spec, const Settings& settings) {
   std::vector<TargetSpec> targets = TargetsOf(spec);
   malloc_trim(0);
   const auto before = ResidentMb();
+  const bool peak_reset = ResetPeakRss();
+  RigBuildControl build;
+  if (settings.spool) {
+    // As the server builds an upload: each target's path out of memory as soon as it is solved.
+    fs::create_directories(settings.out);
+    build.spool_directory = settings.out.string();
+  }
   const auto start = Clock::now();
-  const std::shared_ptr<const Rig> rig = Rig::Build(std::move(rest), std::move(targets), settings.rig);
+  const std::shared_ptr<const Rig> rig = Rig::Build(std::move(rest), std::move(targets), settings.rig, build);
   row["build_ms"] = MsSince(start);
+  const auto peak = StatusMb("VmHWM");
+  if (peak_reset && before && peak) row["build_peak_mb"] = std::max(0.0, *peak - *before);
   malloc_trim(0);
   const auto after = ResidentMb();
   if (before && after) row["rig_resident_mb"] = std::max(0.0, *after - *before);
+  row["spooled"] = settings.spool;
   const RigSummary& s = rig->summary();
   row["vertices"] = s.vertices;
   row["targets"] = s.targets;
@@ -267,9 +308,9 @@ json RunRow(const RowSpec& spec, const Settings& settings) {
 std::string Table(const json& rows) {
   std::ostringstream out;
   out << "| row | vertices | targets | build s | path ms/target | samples/target | max certified error | "
-         "uncertified | path MB | rig MB w/o paths | resident MB | restart: resident MB / path MB held / in file | restart: build + first frame s | start ms, paths held / in file | path frame ms "
+         "uncertified | path MB | rig MB w/o paths | resident MB | build peak MB | restart: resident MB / path MB held / in file | restart: build + first frame s | start ms, paths held / in file | path frame ms "
          "median / max | full solve ms median / max | speed-up | local | share solved | accuracy |\n";
-  out << "| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | "
+  out << "| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | "
          "---: | ---: | ---: |\n";
   for (const json& r : rows) {
     if (r.contains("skipped")) {
@@ -280,13 +321,14 @@ std::string Table(const json& rows) {
     double path_ms_sum = 0.0;
     for (const auto& p : r["paths"]) path_ms_sum += p["ms"].get<double>();
     out << fmt::format(
-        "| {} | {} | {} | {:.1f} | {:.0f} | {:.1f} | {:.1e} | {} | {:.1f} | {:.1f} | {:.0f} | {:.0f} / {:.2f} / {:.1f} | {:.2f} | {:.2f} / {:.2f} | {:.1f} / {:.1f} | "
+        "| {} | {} | {} | {:.1f} | {:.0f} | {:.1f} | {:.1e} | {} | {:.1f} | {:.1f} | {:.0f} | {:.0f}{} | {:.0f} / {:.2f} / {:.1f} | {:.2f} | {:.2f} / {:.2f} | {:.1f} / {:.1f} | "
         "{:.0f} / {:.0f} | {:.0f}x | {}/{} | {:.3f} | {:.1e} |\n",
         r["row"].get<std::string>(), r["vertices"].get<int>(), r["targets"].get<int>(),
         r["build_ms"].get<double>() / 1000.0, path_ms_sum / with_paths,
         static_cast<double>(r["path_samples"].get<int>()) / with_paths, r["path_max_error"].get<double>(),
         r["uncertified_intervals"].get<int>(), r["path_mb"].get<double>(), r["rig_mb_without_paths"].get<double>(),
-        r.value("rig_resident_mb", 0.0), r.value("reload_resident_mb", 0.0), r.value("reload_path_mb_held", 0.0),
+        r.value("rig_resident_mb", 0.0), r.value("build_peak_mb", 0.0), r.value("spooled", false) ? " (spool)" : "",
+        r.value("reload_resident_mb", 0.0), r.value("reload_path_mb_held", 0.0),
         r.value("reload_path_mb_in_file", 0.0),
         (r.value("reload_ms", 0.0) + r.value("reload_first_frame_ms", 0.0)) / 1000.0,
         r.value("start_ms_median_memory", 0.0), r.value("start_ms_median_file", 0.0), r["path_frame_ms_median"].get<double>(),
@@ -314,6 +356,9 @@ int main(int argc, char** argv) {
   app.add_option("--out", settings.out, "output directory");
   app.add_flag("!--no-reference", settings.reference, "skip the tight reference (no accuracy column)");
   app.add_flag("!--no-path-span", settings.span, "path frames without the span step (SolveOptions::path_span_step)");
+  app.add_flag("--spool", settings.spool,
+               "builds leave each path in a spool file in --out as it is solved (RigBuildControl::spool_directory), "
+               "as the server's do");
   app.add_option("--path-intervals", settings.rig.path_intervals, "continuation steps per unit of weight")
       ->check(CLI::Range(1, 256));
   app.add_option("--path-max-samples", settings.rig.path_max_samples, "samples kept per target")

@@ -494,7 +494,7 @@ std::string CharacterStore::PathOf(const std::string& id) const {
 }
 
 std::optional<PrecomputedLocation> CharacterStore::WriteFile(const std::string& id, const std::string& payload,
-                                                             const std::string& precomputed) const {
+                                                             const PrecomputedWriter& precomputed) const {
   if (options_.directory.empty()) return std::nullopt;
   // Atomic: a uniquely named temporary file, flushed to disk, then renamed over the final name. Readers see
   // the whole file or none; a crash leaves at most a temporary file, which is never read, and which the next
@@ -529,20 +529,46 @@ std::optional<PrecomputedLocation> CharacterStore::WriteFile(const std::string& 
   std::string header(kFileMagic, sizeof(kFileMagic));
   header += Sha256(payload);
   header.append(reinterpret_cast<const char*>(&length), sizeof(length));
-  // The parts one after the other rather than joined: the paths may be hundreds of megabytes.
-  const bool ok = WriteAll(fd, header) && WriteAll(fd, payload) && WriteAll(fd, Sha256(precomputed)) &&
-                  WriteAll(fd, precomputed) && ::fsync(fd) == 0;
+  // The parts one after the other rather than joined, and the paths (possibly hundreds of megabytes, left by the
+  // build in its spool) in pieces, hashed as they go: their checksum, which precedes them, is written last.
+  const std::int64_t digest_at = static_cast<std::int64_t>(header.size() + payload.size());
+  std::unique_ptr<EVP_MD_CTX, decltype(&EVP_MD_CTX_free)> context(EVP_MD_CTX_new(), EVP_MD_CTX_free);
+  std::int64_t part_size = 0;
+  std::string failure;
+  bool ok = context && EVP_DigestInit_ex(context.get(), EVP_sha256(), nullptr) == 1 && WriteAll(fd, header) &&
+            WriteAll(fd, payload) && WriteAll(fd, std::string(kDigestBytes, '\0'));
+  try {
+    ok = ok && precomputed([&](std::string_view piece) {
+      EVP_DigestUpdate(context.get(), piece.data(), piece.size());
+      part_size += static_cast<std::int64_t>(piece.size());
+      return WriteAll(fd, piece);
+    });
+  } catch (const std::exception& e) {
+    ok = false;
+    failure = e.what();
+  }
+  unsigned char digest[EVP_MAX_MD_SIZE];
+  unsigned int digest_length = 0;
+  ok = ok && EVP_DigestFinal_ex(context.get(), digest, &digest_length) == 1 && digest_length == kDigestBytes &&
+       ::pwrite(fd, digest, kDigestBytes, static_cast<off_t>(digest_at)) == static_cast<ssize_t>(kDigestBytes) &&
+       ::fsync(fd) == 0;
   if (!ok || std::rename(temporary.c_str(), path.c_str()) != 0) {
     ++write_failures_;
     spdlog::warn("cache file {} not written ({}); the character is served from memory only", path,
-                 std::strerror(errno));
+                 failure.empty() ? std::strerror(errno) : failure);
     ::unlink(temporary.c_str());
     ::close(fd);
     return std::nullopt;
   }
   ::close(fd);  // releases the lock, after the rename
-  return PrecomputedLocation{path, static_cast<std::int64_t>(header.size() + payload.size() + kDigestBytes),
-                             static_cast<std::int64_t>(precomputed.size())};
+  return PrecomputedLocation{path, digest_at + static_cast<std::int64_t>(kDigestBytes), part_size};
+}
+
+std::optional<PrecomputedLocation> CharacterStore::WriteFile(const std::string& id, const std::string& payload,
+                                                             const Rig& rig) const {
+  return WriteFile(id, payload, [&rig](const std::function<bool(std::string_view)>& write) {
+    return rig.WritePrecomputed(write);
+  });
 }
 
 CharacterStore::Cleanup CharacterStore::RemoveStaleTemporaries() {
@@ -687,7 +713,8 @@ std::shared_ptr<const CharacterStore::Entry> CharacterStore::Rebuild(const std::
   }
   // Paths solved here (an older file's, or ones that did not fit) are written at once and read from the file.
   bool written = false;
-  control.persist = [&](const std::string& bytes) {
+  control.spool_directory = options_.directory;
+  control.persist = [&](const PrecomputedWriter& bytes) {
     written = true;
     return WriteFile(id, file.payload, bytes);
   };
@@ -701,7 +728,7 @@ std::shared_ptr<const CharacterStore::Entry> CharacterStore::Rebuild(const std::
                : file.data.options.target_paths ? fmt::format("solved ({:.0f} ms)", summary.path_ms)
                                                  : std::string("off"));
   // Written once, so the next restart (or another replica) loads what this one had to solve.
-  if ((!file.precomputed || unused) && !written) WriteFile(id, file.payload, entry->rig->SavePrecomputed());
+  if ((!file.precomputed || unused) && !written) WriteFile(id, file.payload, *entry->rig);
   std::lock_guard lock(mutex_);
   if (summary.paths_loaded) ++stats_.paths_loaded;
   if (!file.precomputed || unused) ++stats_.upgraded_files;
@@ -838,12 +865,13 @@ void CharacterStore::RunBuild(const std::shared_ptr<PendingBuild>& flight,
       // The cache file is written as soon as the paths are solved, and the rig reads their samples from it
       // (RigBuildControl::persist): an uploaded character holds no more memory than a restarted one.
       const std::string payload = Serialize(*data);
-      control.persist = [&](const std::string& bytes) {
+      control.spool_directory = options_.directory;  // each path out of memory as soon as it is solved
+      control.persist = [&](const PrecomputedWriter& bytes) {
         written = true;
         return WriteFile(id, payload, bytes);
       };
       entry = Build(id, *data, control);  // throws Error for bad meshes, or when stopped; nothing is stored then
-      if (!written) WriteFile(id, payload, entry->rig->SavePrecomputed());
+      if (!written) WriteFile(id, payload, *entry->rig);
     }
   } catch (...) {
     error = std::current_exception();

@@ -182,8 +182,11 @@ class CharacterStore {
   void Insert(std::shared_ptr<const Entry> entry);  // caller holds mutex_
   std::string PathOf(const std::string& id) const;
   // Where the precomputed part landed (for the rig to read its samples from), nullopt when not written.
+  // The precomputed part is told by `precomputed` in pieces (a rig's WritePrecomputed), never held together.
   std::optional<PrecomputedLocation> WriteFile(const std::string& id, const std::string& payload,
-                                               const std::string& precomputed) const;
+                                               const PrecomputedWriter& precomputed) const;
+  std::optional<PrecomputedLocation> WriteFile(const std::string& id, const std::string& payload,
+                                               const Rig& rig) const;
   // The checked parts of the cache file; nullopt when there is none, or it is corrupt (then it is removed).
   std::optional<CacheFile> ReadFile(const std::string& id);
 

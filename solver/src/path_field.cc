@@ -8,6 +8,7 @@
 #include <algorithm>
 #include <cerrno>
 #include <cmath>
+#include <cstdlib>
 #include <cstring>
 #include <limits>
 #include <vector>
@@ -32,6 +33,42 @@ std::shared_ptr<const PathFile> PathFile::Open(const std::string& path) {
     throw Error(ErrorCode::kInvalidInput, fmt::format("'{}' is not a regular file", path));
   }
   return std::shared_ptr<const PathFile>(new PathFile(fd, path, static_cast<std::int64_t>(st.st_size)));
+}
+
+std::shared_ptr<PathFile> PathFile::Spool(const std::string& directory) {
+  int fd = ::open(directory.c_str(), O_TMPFILE | O_RDWR | O_CLOEXEC, 0600);
+  if (fd < 0 && (errno == EOPNOTSUPP || errno == EISDIR || errno == EINVAL)) {
+    // A file system without O_TMPFILE: a named file, unlinked at once.
+    std::string name = directory + "/.springblend-spool-XXXXXX";
+    fd = ::mkostemp(name.data(), O_CLOEXEC);
+    if (fd >= 0) ::unlink(name.c_str());
+  }
+  if (fd < 0) {
+    throw Error(ErrorCode::kInvalidInput,
+                fmt::format("cannot make a spool file in '{}': {}", directory, std::strerror(errno)));
+  }
+  return std::shared_ptr<PathFile>(new PathFile(fd, directory + " (spool)", 0));
+}
+
+std::int64_t PathFile::Append(const std::string& bytes) {
+  std::lock_guard lock(append_);
+  const std::int64_t at = size_.load();
+  size_t done = 0;
+  while (done < bytes.size()) {
+    const ssize_t put = ::pwrite(fd_, bytes.data() + done, bytes.size() - done, static_cast<off_t>(at + done));
+    if (put < 0 && errno == EINTR) continue;
+    if (put <= 0) {
+      const int error = put < 0 ? errno : ENOSPC;
+      if (::ftruncate(fd_, static_cast<off_t>(at)) != 0) {
+        // The size stays `at` for this file's readers either way: nothing past it is ever read.
+      }
+      throw Error(ErrorCode::kInternal, fmt::format("target paths file '{}': cannot write {} bytes at {} ({})", path_,
+                                                    bytes.size(), at, std::strerror(error)));
+    }
+    done += static_cast<size_t>(put);
+  }
+  size_.store(at + static_cast<std::int64_t>(bytes.size()));
+  return at;
 }
 
 PathFile::~PathFile() {
@@ -140,6 +177,15 @@ void PathField::AppendTo(std::string* out) const {
   if (empty()) return;
   out->append(reinterpret_cast<const char*>(HighWords()), words_size);
   if (words_ == 2) out->append(reinterpret_cast<const char*>(LowWords()), words_size);
+}
+
+void PathField::MoveTo(const std::shared_ptr<PathFile>& spool) {
+  if (empty() || stored()) return;
+  std::string bytes;
+  bytes.reserve(kHeaderBytes + sizeof(std::int32_t) * static_cast<size_t>(high_.size() + low_.size()));
+  AppendTo(&bytes);
+  const std::int64_t at = spool->Append(bytes);
+  *this = Stored(spool, at + static_cast<std::int64_t>(kHeaderBytes), rows_, words_, step_);
 }
 
 bool PathField::ParseHeader(const char* header, double* step, int* words) {

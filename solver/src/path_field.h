@@ -15,8 +15,10 @@
 #pragma once
 
 #include <Eigen/Core>
+#include <atomic>
 #include <cstdint>
 #include <memory>
+#include <mutex>
 #include <string>
 
 namespace springblend::internal {
@@ -28,21 +30,30 @@ class PathFile {
  public:
   // Throws Error(kInvalidInput) naming the file when it cannot be opened.
   static std::shared_ptr<const PathFile> Open(const std::string& path);
+  // A new file without a name in `directory` (O_TMPFILE, or a file unlinked at once where the file system has
+  // none), empty, for a build to leave its paths' words in as each is solved (Append): its disk space is given
+  // back when the last field that reads it is gone. Throws Error(kInvalidInput) naming the directory when it
+  // cannot be made.
+  static std::shared_ptr<PathFile> Spool(const std::string& directory);
   ~PathFile();
   PathFile(const PathFile&) = delete;
   PathFile& operator=(const PathFile&) = delete;
 
   const std::string& path() const { return path_; }
-  std::int64_t size() const { return size_; }
+  std::int64_t size() const { return size_.load(); }
   // n bytes at `offset` into out; throws Error(kInternal) naming the file and the offset when they cannot be read
   // (a file cut short after it was opened).
   void Read(std::int64_t offset, size_t n, void* out) const;
+  // Writes `bytes` at the end of a spool (thread-safe) and returns their offset; throws Error(kInternal) naming
+  // the directory when they cannot all be written (a full disk), the file's size then unchanged.
+  std::int64_t Append(const std::string& bytes);
 
  private:
   PathFile(int fd, std::string path, std::int64_t size) : fd_(fd), path_(std::move(path)), size_(size) {}
   int fd_ = -1;
   std::string path_;
-  std::int64_t size_ = 0;
+  std::atomic<std::int64_t> size_{0};
+  std::mutex append_;
 };
 
 class PathField {
@@ -72,6 +83,9 @@ class PathField {
 
   // Little-endian bytes: step (double), words (uint8), then the words, column-major.
   void AppendTo(std::string* out) const;
+  // A field held in memory writes its words to `spool` (PathFile::Append) and from then on reads them there
+  // (stored()); one already stored, or empty, is left as it is. Throws as Append does, the field then unchanged.
+  void MoveTo(const std::shared_ptr<PathFile>& spool);
   // Reads one field of `rows` rows at *at; false (and *at unspecified) when the bytes are not one.
   static bool Parse(const std::string& in, size_t* at, Eigen::Index rows, PathField* field);
   // The step and word count that begin a field (AppendTo's first 9 bytes); false when they are not valid.

@@ -218,6 +218,14 @@ std::shared_ptr<const Rig> RigBuilder::Build(TriangleMesh rest, std::vector<Targ
       path_options.tolerance = options.path_tolerance;
       path_options.max_samples = options.path_max_samples;
       path_options.stop = control.stop ? &control.stop : nullptr;
+      if (!control.spool_directory.empty()) {
+        try {
+          path_options.spool = internal::PathFile::Spool(control.spool_directory);
+        } catch (const Error& e) {
+          s.notes.push_back(
+              fmt::format("the target paths were held in memory while they were solved ({})", e.what()));
+        }
+      }
       int done = 0, samples = 0;
       if (control.progress) {
         path_options.done = [&](int, const internal::TargetPath& path) {
@@ -230,6 +238,9 @@ std::shared_ptr<const Rig> RigBuilder::Build(TriangleMesh rest, std::vector<Targ
       internals.paths = internal::BuildTargetPaths(*rig, path_options, &report);
       s.unconverged_path_samples = report.unconverged;
       s.path_ms = report.ms;
+      if (!report.spool_error.empty()) {
+        s.notes.push_back(fmt::format("some target paths were held in memory: {}", report.spool_error));
+      }
       if (report.unconverged > 0) {
         s.notes.push_back(fmt::format("{} of {} samples of the targets' paths did not converge; frames near them "
                                       "start from the best found",
@@ -237,7 +248,10 @@ std::shared_ptr<const Rig> RigBuilder::Build(TriangleMesh rest, std::vector<Targ
       }
       if (control.persist) {
         // Kept in the caller's file: the samples are read from there from now on, the same bits.
-        const std::string bytes = internal::SerializeTargetPaths(internals.paths);
+        const std::vector<internal::TargetPath>& solved = internals.paths;
+        const PrecomputedWriter bytes = [&solved](const std::function<bool(std::string_view)>& write) {
+          return internal::WriteTargetPaths(solved, write);
+        };
         if (const std::optional<PrecomputedLocation> at = control.persist(bytes)) {
           std::string why_not;
           std::optional<std::vector<internal::TargetPath>> stored = parse_file(*at, &why_not);
@@ -249,8 +263,9 @@ std::shared_ptr<const Rig> RigBuilder::Build(TriangleMesh rest, std::vector<Targ
               path.tangents = std::move((*stored)[t].tangents);
             }
           } else {
-            s.notes.push_back(fmt::format("the target paths could not be left in '{}' ({}): held in memory",
-                                          at->file, why_not.empty() ? "another rig's" : why_not));
+            s.notes.push_back(fmt::format("the target paths could not be left in '{}' ({}): {}", at->file,
+                                          why_not.empty() ? "another rig's" : why_not,
+                                          path_options.spool ? "read from the build's spool" : "held in memory"));
           }
         }
       }
@@ -286,6 +301,10 @@ std::shared_ptr<const Rig> RigBuilder::Build(TriangleMesh rest, std::vector<Targ
 }
 
 std::string Rig::SavePrecomputed() const { return internal::SerializeTargetPaths(internals_->paths); }
+
+bool Rig::WritePrecomputed(const std::function<bool(std::string_view piece)>& write) const {
+  return internal::WriteTargetPaths(internals_->paths, write);
+}
 
 std::shared_ptr<const Rig> Rig::Build(TriangleMesh rest, std::vector<TriangleMesh> targets,
                                       const RigOptions& options) {

@@ -1067,6 +1067,16 @@ std::vector<TargetPath> BuildTargetPaths(const Rig& rig, const TargetPathsOption
   tbb::parallel_for(0, targets, [&](int t) {
     if (!TargetChangesLengths(rig, t)) return;
     BuildPath(rig, t, options, &paths[t]);
+    if (options.spool) {
+      // Each field once it is final; one that cannot be written (a full disk) stays in memory, with the rest.
+      try {
+        for (PathField& c : paths[t].corrections) c.MoveTo(options.spool);
+        for (PathField& d : paths[t].tangents) d.MoveTo(options.spool);
+      } catch (const Error& e) {
+        std::lock_guard lock(mutex);
+        if (report->spool_error.empty()) report->spool_error = e.what();
+      }
+    }
     if (options.done) {
       std::lock_guard lock(mutex);
       options.done(t, paths[t]);
@@ -1250,8 +1260,15 @@ class Cursor {
 
 }  // namespace
 
-std::string SerializeTargetPaths(const std::vector<TargetPath>& paths) {
+bool WriteTargetPaths(const std::vector<TargetPath>& paths, const std::function<bool(std::string_view)>& write) {
+  constexpr size_t kPiece = size_t{4} << 20;  // bytes gathered before they are told
   std::string out(kPathsMagic, sizeof(kPathsMagic));
+  const auto flush = [&](size_t at_least) {
+    if (out.size() < at_least) return true;
+    const bool ok = write(out);
+    out.clear();
+    return ok;
+  };
   const std::uint32_t vertices = [&] {
     for (const TargetPath& p : paths) {
       if (!p.empty()) return static_cast<std::uint32_t>(p.corrections[0].rows());
@@ -1271,15 +1288,28 @@ std::string SerializeTargetPaths(const std::vector<TargetPath>& paths) {
     out.append(reinterpret_cast<const char*>(p.breaks.data()), p.breaks.size());
     out.append(reinterpret_cast<const char*>(p.certified.data()), p.certified.size());
     // Version 4: fixed point (PathField), in one or two words.
-    for (const PathField& c : p.corrections) c.AppendTo(&out);
+    for (const PathField& c : p.corrections) {
+      c.AppendTo(&out);
+      if (!flush(kPiece)) return false;
+    }
     // Version 3: per sample, whether it has an exact tangent, then those tangents.
     for (int k = 0; k < p.samples(); ++k) out.push_back(HasTangent(p, k) ? 1 : 0);
     for (int k = 0; k < p.samples(); ++k) {
       if (!HasTangent(p, k)) continue;
       p.tangents[k].AppendTo(&out);
+      if (!flush(kPiece)) return false;
     }
   }
-  return out;
+  return flush(1);
+}
+
+std::string SerializeTargetPaths(const std::vector<TargetPath>& paths) {
+  std::string bytes;
+  WriteTargetPaths(paths, [&](std::string_view piece) {
+    bytes.append(piece);
+    return true;
+  });
+  return bytes;
 }
 
 namespace {

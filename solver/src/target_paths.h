@@ -27,6 +27,7 @@
 #include <functional>
 #include <optional>
 #include <string>
+#include <string_view>
 #include <vector>
 
 #include "anchor.h"
@@ -69,6 +70,9 @@ struct TargetPathsOptions {
   double tolerance = 1e-6;     // midpoint error, of the bounding-box diagonal
   int max_samples = 64;        // per target
   const std::function<bool()>* stop = nullptr;  // asked between solves and Newton iterations
+  // Where each target's path leaves its fields as soon as it is done (PathField::MoveTo), so a build holds the
+  // paths being solved, not those solved; null: they stay in memory.
+  std::shared_ptr<PathFile> spool;
   // Called after each target's path is done (from the building thread, serialized by the caller's lock).
   std::function<void(int target, const TargetPath& path)> done;
 };
@@ -81,6 +85,7 @@ struct TargetPathsReport {
   int newton_iterations = 0;
   double max_error = 0.0;
   double ms = 0.0;
+  std::string spool_error;  // why a path was held in memory rather than spooled (the first failure); empty
 };
 
 // Whether any sculpted shape of the target changes a rest length (else its path is the linear blend).
@@ -127,6 +132,9 @@ int RefineInPathSpan(const std::vector<TargetPath>& paths, const std::vector<dou
 // The paths as bytes (versioned, little-endian) and back. Parse returns nullopt, with the reason in *why, when
 // the bytes are not paths of this rig (version, target count, vertex count, sizes).
 std::string SerializeTargetPaths(const std::vector<TargetPath>& paths);
+// The same bytes told to `write` in consecutive pieces (a few megabytes at most each, read from the paths' file
+// where they are stored), so they are never held together; false when `write` returned false.
+bool WriteTargetPaths(const std::vector<TargetPath>& paths, const std::function<bool(std::string_view)>& write);
 std::optional<std::vector<TargetPath>> ParseTargetPaths(const std::string& bytes, int targets, int vertices,
                                                         std::string* why);
 // The same bytes in `file` at [offset, offset + size) (size -1: to its end); the fixed-point fields stay in the

@@ -104,6 +104,10 @@ TEST(CacheFile, ARestartLoadsTheTargetPathsFromTheFile) {
   const std::string file = ReadAll(dir.path() / (first->id + ".sbchar"));
   EXPECT_EQ(file.substr(0, 8), "SBCHAR02");
   EXPECT_GT(file.size(), Serialize(cylinder).size() + first->rig->SavePrecomputed().size()) << "both parts";
+  // The build left each path in a spool without a name as it was solved, and the file was written from there in
+  // pieces: the directory holds the character's file alone.
+  EXPECT_EQ(std::distance(std::filesystem::directory_iterator(dir.path()), std::filesystem::directory_iterator()), 1);
+  for (const std::string& note : built.notes) EXPECT_THAT(note, ::testing::Not(HasSubstr("held in memory")));
 
   LogCapture log;
   CharacterStore restarted({dir.path().string()});

@@ -597,9 +597,17 @@ TEST(TargetPaths, PathsLeftInAFileGiveTheSameFramesAndAreNotHeld) {
   // there.
   const std::string persisted = (dir.path() / "persisted.cache").string();
   int persist_calls = 0;
-  missing.persist = [&](const std::string& solved_bytes) {
+  missing.persist = [&](const PrecomputedWriter& writer) {
     ++persist_calls;
+    std::string solved_bytes;
+    int pieces = 0;
+    EXPECT_TRUE(writer([&](std::string_view piece) {
+      ++pieces;
+      solved_bytes.append(piece);
+      return true;
+    }));
     EXPECT_TRUE(solved_bytes == bytes);
+    EXPECT_GE(pieces, 1);
     std::ofstream(persisted, std::ios::binary) << before << solved_bytes;
     return std::optional<PrecomputedLocation>(PrecomputedLocation{persisted, static_cast<std::int64_t>(before.size())});
   };
@@ -619,7 +627,7 @@ TEST(TargetPaths, PathsLeftInAFileGiveTheSameFramesAndAreNotHeld) {
   }
   // A caller that could not keep them (nullopt): held in memory, as without the callback.
   RigBuildControl unkept;
-  unkept.persist = [](const std::string&) { return std::optional<PrecomputedLocation>(); };
+  unkept.persist = [](const PrecomputedWriter&) { return std::optional<PrecomputedLocation>(); };
   const auto held = Rig::Build(LoadMesh(DataPath("cylinder/cylinder.obj")), specs, {}, unkept);
   EXPECT_EQ(held->summary().path_file_bytes, 0);
   EXPECT_EQ(held->summary().path_bytes, rig->summary().path_bytes);
@@ -632,6 +640,71 @@ TEST(TargetPaths, PathsLeftInAFileGiveTheSameFramesAndAreNotHeld) {
   const Error e = CatchError([&] { c.Solve(Frame{{0.9, 0.0}}, &z); });
   EXPECT_EQ(e.code(), ErrorCode::kInternal);
   EXPECT_THAT(e.what(), HasSubstr("character.cache"));
+}
+
+// A build with a spool directory (RigBuildControl::spool_directory) leaves each target's path in a file without a
+// name as soon as it is solved: the rig holds only the paths' metadata from then on, leaves nothing in the
+// directory, gives the same bytes and frames to the bit, and tells its bytes in pieces that stop when asked.
+TEST(TargetPaths, ABuildSpoolsEachPathAsItIsSolved) {
+  const auto& rig = SharedCylinder();
+  const std::string bytes = rig->SavePrecomputed();
+  const std::vector<TargetSpec> specs = CylinderSpecs();
+  testing::TempDir dir;
+  RigBuildControl control;
+  control.spool_directory = dir.path().string();
+  int paths_done = 0;
+  control.progress = [&](const RigBuildProgress& p) {
+    if (p.stage == "paths" && p.targets_done > 0) paths_done = p.targets_done;
+  };
+  const auto spooled = Rig::Build(LoadMesh(DataPath("cylinder/cylinder.obj")), specs, {}, control);
+  const RigSummary& s = spooled->summary();
+  EXPECT_EQ(paths_done, 2);
+  EXPECT_THAT(s.notes, ::testing::Not(::testing::Contains(HasSubstr("held in memory"))))
+      << ::testing::PrintToString(s.notes);
+  EXPECT_EQ(s.path_samples, rig->summary().path_samples);
+  EXPECT_GT(s.path_file_bytes, rig->summary().path_bytes * 9 / 10) << "the samples' words are in the spool";
+  EXPECT_LT(s.path_bytes, rig->summary().path_bytes / 10) << "the rig holds only the paths' metadata";
+  EXPECT_TRUE(std::filesystem::is_empty(dir.path())) << "the spool has no name";
+  EXPECT_TRUE(spooled->SavePrecomputed() == bytes);
+  std::string told;
+  int pieces = 0;
+  EXPECT_TRUE(spooled->WritePrecomputed([&](std::string_view piece) {
+    ++pieces;
+    told.append(piece);
+    return true;
+  }));
+  EXPECT_TRUE(told == bytes);
+  EXPECT_FALSE(spooled->WritePrecomputed([](std::string_view) { return false; })) << "a writer that stops";
+  Solver a(rig), b(spooled);
+  for (const std::vector<double>& w :
+       std::vector<std::vector<double>>{{0.3, 0.0}, {0.9, 0.0}, {-0.2, 0.0}, {1.2, 0.0}, {0.6, 0.4}}) {
+    Points x, y;
+    ASSERT_TRUE(a.Solve(Frame{w}, &x).converged());
+    ASSERT_TRUE(b.Solve(Frame{w}, &y).converged());
+    EXPECT_TRUE(x == y) << "frames differ at " << w[0] << ", " << w[1];
+  }
+
+  // Kept by the caller too: read from its file from then on, the spool let go.
+  const std::string persisted = (dir.path() / "persisted.cache").string();
+  control.persist = [&](const PrecomputedWriter& writer) {
+    std::ofstream out(persisted, std::ios::binary);
+    EXPECT_TRUE(writer([&](std::string_view piece) {
+      return static_cast<bool>(out.write(piece.data(), static_cast<std::streamsize>(piece.size())));
+    }));
+    return std::optional<PrecomputedLocation>(PrecomputedLocation{persisted});
+  };
+  const auto kept = Rig::Build(LoadMesh(DataPath("cylinder/cylinder.obj")), specs, {}, control);
+  EXPECT_TRUE(kept->SavePrecomputed() == bytes);
+  EXPECT_EQ(kept->summary().path_file_bytes, s.path_file_bytes);
+  EXPECT_EQ(std::filesystem::file_size(persisted), bytes.size());
+
+  // A directory where no spool can be made: held in memory, with a note naming it; the same bytes.
+  RigBuildControl nowhere;
+  nowhere.spool_directory = (dir.path() / "absent").string();
+  const auto held = Rig::Build(LoadMesh(DataPath("cylinder/cylinder.obj")), specs, {}, nowhere);
+  EXPECT_THAT(held->summary().notes, ::testing::Contains(HasSubstr("absent")));
+  EXPECT_EQ(held->summary().path_file_bytes, 0);
+  EXPECT_TRUE(held->SavePrecomputed() == bytes);
 }
 
 TEST(TargetPaths, AStopCheckEndsTheBuildWithinASecond) {

@@ -10,6 +10,7 @@
 #include <memory>
 #include <optional>
 #include <string>
+#include <string_view>
 #include <vector>
 
 #include "springblend/mesh.h"
@@ -215,6 +216,11 @@ struct PrecomputedLocation {
   std::int64_t size = -1;
 };
 
+// Tells Rig::SavePrecomputed's bytes, in order, in pieces of a few megabytes to `write`, so they are never held
+// together; stops and returns false when `write` returns false. Throws Error(kInternal) naming the file when the
+// samples left in a file cannot be read back.
+using PrecomputedWriter = std::function<bool(const std::function<bool(std::string_view piece)>& write)>;
+
 struct RigBuildControl {
   // Asked between path samples and Newton iterations; when it says true the build ends with
   // Error(kCancelled). Called on the building threads, possibly concurrently.
@@ -231,10 +237,17 @@ struct RigBuildControl {
   // rig lives (replace it by renaming, as the server's cache does). A file that cannot be opened or read is
   // treated as bytes that do not fit: the paths are solved and a note says why.
   std::optional<PrecomputedLocation> precomputed_file;
-  // Called once the paths are solved (not when loaded) with Rig::SavePrecomputed's bytes: a caller that keeps
-  // them in a file (the server's cache file) writes them there and says where; the rig then leaves its samples
-  // in that file as with precomputed_file. Nullopt (or no callback) keeps them in memory.
-  std::function<std::optional<PrecomputedLocation>(const std::string& bytes)> persist;
+  // A directory where the build leaves each target's path as soon as it is solved, in a file without a name (its
+  // disk space given back when the rig that reads it is gone), so a build of many expressions holds the paths
+  // being solved rather than all of them. Empty: they are held in memory. A directory where no such file can be
+  // made (or a disk that fills) keeps the paths in memory, with a note.
+  std::string spool_directory;
+  // Called once the paths are solved (not when loaded) with a writer of Rig::SavePrecomputed's bytes, which it
+  // tells in consecutive pieces to its argument (stopping when that returns false; it returns false then): a
+  // caller that keeps them in a file (the server's cache file) writes them there and says where; the rig then
+  // leaves its samples in that file as with precomputed_file. Nullopt (or no callback) keeps them where they are
+  // (in the spool, else in memory).
+  std::function<std::optional<PrecomputedLocation>(const PrecomputedWriter& bytes)> persist;
 };
 
 class Rig {
@@ -252,6 +265,8 @@ class Rig {
   ~Rig();
   // What is costly to rebuild (the target paths) as versioned bytes, for RigBuildControl::precomputed.
   std::string SavePrecomputed() const;
+  // The same bytes told in pieces (PrecomputedWriter), never held together.
+  bool WritePrecomputed(const std::function<bool(std::string_view piece)>& write) const;
   Rig(const Rig&) = delete;
   Rig& operator=(const Rig&) = delete;
 
