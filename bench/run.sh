@@ -4,7 +4,8 @@
 # direct-Newton baseline on the same frames), a perf profile of the face's solve (bench/profile.sh), the slider
 # drag through a server (bench/slider.py), the service throughput script and the sparse backends' comparison
 # (bench/linear_algebra.sh), and writes bench-results/{bench.md,bench.json,ms_per_step.png,paths.md,paths.json,
-# bake.md,bake.json,profile.md,slider.md,slider.json,service.md,linear_algebra.md}.
+# face-52/paths.md,face-52/paths.json,bake.md,bake.json,profile.md,slider.md,slider.json,service.md,
+# linear_algebra.md}.
 #   bash bench/run.sh [springblend-bench options, e.g. --rows face,horse --steps 36 --shared DIR]
 # Without --steps (or --quick) the sweep has 18 frames (17 solved per pass), so that the whole run, every row
 # with all three methods, the baseline and the reference, took 37 minutes on two cores before the three
@@ -32,6 +33,11 @@ build/bench/bench/springblend-bench --out bench-results "${defaults[@]}" "$@" ||
 # The target paths: build time and samples per target, path frames (17 off-sample alphas per target) against the
 # full solve from the same start and a 1e-12 reference, memory, and a restart from the saved paths.
 build/bench/bench/springblend-paths-bench --out bench-results --shared "$shared" || status=$?
+# A production face's count of expressions: 52 (the ICT face's 16 and 36 pairs of them), built as the server builds
+# an upload (each path spooled as it is solved): the build's peak, the rig's resident memory, built and restarted.
+# About ten minutes.
+build/bench/bench/springblend-paths-bench --rows face-52 --frames 5 --targets 1 --no-reference --spool \
+  --out bench-results/face-52 --shared "$shared" || status=$?
 # Baked plain rigs (bake-rig) against solved frames: single targets at held-out weights, pairs, five-target mixes.
 build/bench/bench/springblend-bake-bench --out bench-results --shared "$shared" || status=$?
 bash bench/profile.sh build/bench bench-results face 12 newton "$shared" || status=$?

@@ -5,6 +5,7 @@
 #include <fmt/format.h>
 #include <tbb/parallel_for.h>
 #include <tbb/parallel_invoke.h>
+#include <tbb/task_arena.h>
 #include <tbb/task_group.h>
 
 #include <algorithm>
@@ -1066,7 +1067,10 @@ std::vector<TargetPath> BuildTargetPaths(const Rig& rig, const TargetPathsOption
   std::mutex mutex;
   tbb::parallel_for(0, targets, [&](int t) {
     if (!TargetChangesLengths(rig, t)) return;
-    BuildPath(rig, t, options, &paths[t]);
+    // Isolated: a thread that waits inside this target's path (for its other chain) runs that path's work only,
+    // never another target's. Without, it would start the next target while its own is in flight, each holding
+    // its two chains' factorizations: more targets in memory at once than there are threads.
+    tbb::this_task_arena::isolate([&] { BuildPath(rig, t, options, &paths[t]); });
     if (options.spool) {
       // Each field once it is final; one that cannot be written (a full disk) stays in memory, with the rest.
       try {
