@@ -6,7 +6,10 @@
 #include <gmock/gmock.h>
 #include <gtest/gtest.h>
 
+#include <sys/resource.h>
+
 #include <atomic>
+#include <csignal>
 #include <filesystem>
 #include <fstream>
 #include <chrono>
@@ -705,6 +708,46 @@ TEST(TargetPaths, ABuildSpoolsEachPathAsItIsSolved) {
   EXPECT_THAT(held->summary().notes, ::testing::Contains(HasSubstr("absent")));
   EXPECT_EQ(held->summary().path_file_bytes, 0);
   EXPECT_TRUE(held->SavePrecomputed() == bytes);
+}
+
+// A spool that fills (here the process's file-size limit, as a full disk would) keeps the paths it could not take
+// in memory, says so, and changes nothing else: the same bytes and frames, part read from the spool, part held.
+TEST(TargetPaths, ASpoolThatFillsKeepsThePathsInMemory) {
+  const auto& rig = SharedCylinder();
+  const std::string bytes = rig->SavePrecomputed();
+  testing::TempDir dir;
+  RigBuildControl control;
+  control.spool_directory = dir.path().string();
+  rlimit before{};
+  ASSERT_EQ(getrlimit(RLIMIT_FSIZE, &before), 0);
+  const auto old_handler = std::signal(SIGXFSZ, SIG_IGN);  // a write past the limit then fails with EFBIG
+  rlimit limited = before;
+  limited.rlim_cur = 64 * 1024;  // a few of the cylinder's fields
+  ASSERT_EQ(setrlimit(RLIMIT_FSIZE, &limited), 0);
+  std::shared_ptr<const Rig> spooled;
+  try {
+    spooled = Rig::Build(LoadMesh(DataPath("cylinder/cylinder.obj")), CylinderSpecs(), {}, control);
+  } catch (...) {
+    setrlimit(RLIMIT_FSIZE, &before);
+    std::signal(SIGXFSZ, old_handler);
+    throw;
+  }
+  ASSERT_EQ(setrlimit(RLIMIT_FSIZE, &before), 0);
+  std::signal(SIGXFSZ, old_handler);
+  const RigSummary& s = spooled->summary();
+  EXPECT_THAT(s.notes, ::testing::Contains(HasSubstr("some target paths were held in memory")))
+      << ::testing::PrintToString(s.notes);
+  EXPECT_GT(s.path_file_bytes, 0) << "the fields before the limit are in the spool";
+  EXPECT_LE(s.path_file_bytes, 64 * 1024);
+  EXPECT_GT(s.path_bytes, rig->summary().path_bytes / 2) << "the rest are held";
+  EXPECT_TRUE(spooled->SavePrecomputed() == bytes);
+  Solver a(rig), b(spooled);
+  for (const std::vector<double>& w : std::vector<std::vector<double>>{{0.4, 0.0}, {1.1, 0.0}, {0.0, 0.8}}) {
+    Points x, y;
+    ASSERT_TRUE(a.Solve(Frame{w}, &x).converged());
+    ASSERT_TRUE(b.Solve(Frame{w}, &y).converged());
+    EXPECT_TRUE(x == y) << "frames differ at " << w[0] << ", " << w[1];
+  }
 }
 
 TEST(TargetPaths, AStopCheckEndsTheBuildWithinASecond) {
