@@ -2,6 +2,7 @@
 
 #include <ext/stdio_filebuf.h>
 #include <fcntl.h>
+#include <malloc.h>
 #include <openssl/evp.h>
 #include <sys/file.h>
 #include <sys/stat.h>
@@ -210,6 +211,16 @@ bool RemoveCacheFile(const std::string& path) {
     return false;
   }
   return ::unlink(path.c_str()) == 0;
+}
+
+// Gives the process's free heap back to the system. A rig build frees hundreds of megabytes of working memory (a
+// face's: its two paths in flight, their chains' factorizations) in pieces over several allocator arenas, which
+// glibc otherwise keeps: a server's resident set stayed at 253 MB after a 16-expression face's upload whose rig
+// holds a few tens.
+void ReturnFreeHeap() {
+#if defined(__GLIBC__)
+  malloc_trim(0);
+#endif
 }
 
 bool WriteAll(int fd, std::string_view bytes) {
@@ -895,6 +906,7 @@ void CharacterStore::RunBuild(const std::shared_ptr<PendingBuild>& flight,
   // afterwards. Either way it goes.
   if (deleted && !options_.directory.empty()) RemoveCacheFile(PathOf(id));
   flight->End(std::move(entry), error);
+  ReturnFreeHeap();  // the build's working memory, whether it succeeded or not
 }
 
 std::vector<CharacterStore::Listed> CharacterStore::List() {
