@@ -9,7 +9,8 @@
 #   bash bench/run.sh [springblend-bench options, e.g. --rows face,horse --steps 36 --shared DIR]
 # Without --steps (or --quick) the sweep has 18 frames (17 solved per pass), so that the whole run, every row
 # with all three methods, the baseline and the reference, took 37 minutes on two cores before the three
-# random-mix rows, which add about 25 more (estimated from horse-random's quick run: its rig 226 s, frames 1-6 s).
+# random-mix rows, which add about 25 more (estimated from horse-random's quick run: its rig 226 s, frames 1-6 s),
+# and the paths bench's face-52 row about ten more.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 bash deploy/install-deps.sh
