@@ -28,6 +28,7 @@
 #include <string>
 #include <vector>
 
+#include "process_memory.h"
 #include "springblend/error.h"
 #include "springblend/mesh.h"
 #include "springblend/rig.h"
@@ -45,18 +46,7 @@ double MsSince(Clock::time_point start) {
   return std::chrono::duration<double, std::milli>(Clock::now() - start).count();
 }
 
-// A line of /proc/self/status in MB (VmRSS: resident now; VmHWM: its high-water mark).
-std::optional<double> StatusMb(const std::string& key) {
-  std::ifstream in("/proc/self/status");
-  std::string line;
-  while (std::getline(in, line)) {
-    if (line.rfind(key + ":", 0) == 0) return std::stod(line.substr(key.size() + 1)) / 1024.0;
-  }
-  return std::nullopt;
-}
 std::optional<double> ResidentMb() { return StatusMb("VmRSS"); }
-// Resets the resident set's high-water mark (VmHWM) to the resident set now; false where the kernel does not.
-bool ResetPeakRss() { return static_cast<bool>(std::ofstream("/proc/self/clear_refs") << "5" << std::flush); }
 
 struct RowSpec {
   std::string name;

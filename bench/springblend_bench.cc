@@ -39,6 +39,7 @@
 #include <thread>
 #include <vector>
 
+#include "process_memory.h"
 #include "springblend/error.h"
 #include "springblend/mesh.h"
 #include "springblend/rig.h"
@@ -203,23 +204,7 @@ std::optional<fs::path> MissingFile(const RowSpec& spec) {
 
 // ---- Memory ----------------------------------------------------------------------------------------------
 
-// A line "Key:   123 kB" of /proc/self/status, in MB; nullopt where /proc is not there.
-std::optional<double> StatusMb(const std::string& key) {
-  std::ifstream status("/proc/self/status");
-  std::string line;
-  while (std::getline(status, line)) {
-    if (line.rfind(key + ":", 0) == 0) {
-      std::istringstream fields(line.substr(key.size() + 1));
-      double kb = 0.0;
-      if (fields >> kb) return kb / 1024.0;
-    }
-  }
-  return std::nullopt;
-}
-
-// Resets the process's resident-set high-water mark (VmHWM), so each row's peak is its own. False where the
-// kernel does not allow it; the row's peak is then the process's so far.
-bool ResetPeakRss() { return static_cast<bool>(std::ofstream("/proc/self/clear_refs") << "5" << std::flush); }
+// StatusMb and ResetPeakRss: process_memory.h.
 
 double MaxRssMb() {
   rusage usage{};

@@ -117,21 +117,38 @@ bool ReadExactly(std::istream& in, std::uint64_t n, std::string* out) {
   return static_cast<bool>(in.read(out->data(), static_cast<std::streamsize>(n)));
 }
 
+// SHA-256 of bytes told in pieces (none kept); Final is empty when OpenSSL failed.
+class Sha256Stream {
+ public:
+  Sha256Stream() : context_(EVP_MD_CTX_new(), EVP_MD_CTX_free) {
+    ok_ = context_ && EVP_DigestInit_ex(context_.get(), EVP_sha256(), nullptr) == 1;
+  }
+  void Update(std::string_view piece) {
+    ok_ = ok_ && EVP_DigestUpdate(context_.get(), piece.data(), piece.size()) == 1;
+  }
+  std::string Final() {
+    unsigned char digest[EVP_MAX_MD_SIZE];
+    unsigned int length = 0;
+    if (!ok_ || EVP_DigestFinal_ex(context_.get(), digest, &length) != 1) return {};
+    return std::string(reinterpret_cast<const char*>(digest), length);
+  }
+
+ private:
+  std::unique_ptr<EVP_MD_CTX, decltype(&EVP_MD_CTX_free)> context_;
+  bool ok_ = false;
+};
+
 // SHA-256 of the next n bytes of `in`, read in pieces (none kept); empty when they cannot be read.
 std::string StreamSha256(std::istream& in, std::uint64_t n) {
-  std::unique_ptr<EVP_MD_CTX, decltype(&EVP_MD_CTX_free)> context(EVP_MD_CTX_new(), EVP_MD_CTX_free);
-  if (!context || EVP_DigestInit_ex(context.get(), EVP_sha256(), nullptr) != 1) return {};
+  Sha256Stream sha;
   std::vector<char> piece(1 << 20);
   while (n > 0) {
     const std::uint64_t take = std::min<std::uint64_t>(n, piece.size());
     if (!in.read(piece.data(), static_cast<std::streamsize>(take))) return {};
-    EVP_DigestUpdate(context.get(), piece.data(), take);
+    sha.Update(std::string_view(piece.data(), take));
     n -= take;
   }
-  unsigned char digest[EVP_MAX_MD_SIZE];
-  unsigned int length = 0;
-  if (EVP_DigestFinal_ex(context.get(), digest, &length) != 1) return {};
-  return std::string(reinterpret_cast<const char*>(digest), length);
+  return sha.Final();
 }
 
 // A cache file's parts, each checked against its checksum; false (and why) when the file is not whole. The
@@ -543,14 +560,13 @@ std::optional<PrecomputedLocation> CharacterStore::WriteFile(const std::string& 
   // The parts one after the other rather than joined, and the paths (possibly hundreds of megabytes, left by the
   // build in its spool) in pieces, hashed as they go: their checksum, which precedes them, is written last.
   const std::int64_t digest_at = static_cast<std::int64_t>(header.size() + payload.size());
-  std::unique_ptr<EVP_MD_CTX, decltype(&EVP_MD_CTX_free)> context(EVP_MD_CTX_new(), EVP_MD_CTX_free);
+  Sha256Stream sha;
   std::int64_t part_size = 0;
   std::string failure;
-  bool ok = context && EVP_DigestInit_ex(context.get(), EVP_sha256(), nullptr) == 1 && WriteAll(fd, header) &&
-            WriteAll(fd, payload) && WriteAll(fd, std::string(kDigestBytes, '\0'));
+  bool ok = WriteAll(fd, header) && WriteAll(fd, payload) && WriteAll(fd, std::string(kDigestBytes, '\0'));
   try {
     ok = ok && precomputed([&](std::string_view piece) {
-      EVP_DigestUpdate(context.get(), piece.data(), piece.size());
+      sha.Update(piece);
       part_size += static_cast<std::int64_t>(piece.size());
       return WriteAll(fd, piece);
     });
@@ -558,10 +574,10 @@ std::optional<PrecomputedLocation> CharacterStore::WriteFile(const std::string& 
     ok = false;
     failure = e.what();
   }
-  unsigned char digest[EVP_MAX_MD_SIZE];
-  unsigned int digest_length = 0;
-  ok = ok && EVP_DigestFinal_ex(context.get(), digest, &digest_length) == 1 && digest_length == kDigestBytes &&
-       ::pwrite(fd, digest, kDigestBytes, static_cast<off_t>(digest_at)) == static_cast<ssize_t>(kDigestBytes) &&
+  const std::string digest = ok ? sha.Final() : std::string();
+  ok = ok && digest.size() == kDigestBytes &&
+       ::pwrite(fd, digest.data(), kDigestBytes, static_cast<off_t>(digest_at)) ==
+           static_cast<ssize_t>(kDigestBytes) &&
        ::fsync(fd) == 0;
   if (!ok || std::rename(temporary.c_str(), path.c_str()) != 0) {
     ++write_failures_;

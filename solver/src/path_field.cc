@@ -59,9 +59,9 @@ std::int64_t PathFile::Append(const std::string& bytes) {
     if (put < 0 && errno == EINTR) continue;
     if (put <= 0) {
       const int error = put < 0 ? errno : ENOSPC;
-      if (::ftruncate(fd_, static_cast<off_t>(at)) != 0) {
-        // The size stays `at` for this file's readers either way: nothing past it is ever read.
-      }
+      // The bytes written past `at` given back; if that fails they are only overwritten by the next Append (the
+      // size stays `at`, and nothing past it is ever read).
+      [[maybe_unused]] const int truncated = ::ftruncate(fd_, static_cast<off_t>(at));
       throw Error(ErrorCode::kInternal, fmt::format("target paths file '{}': cannot write {} bytes at {} ({})", path_,
                                                     bytes.size(), at, std::strerror(error)));
     }
