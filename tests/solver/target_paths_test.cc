@@ -801,7 +801,9 @@ TEST(TargetPaths, AMixStartsAtTheLowestEnergyOnItsCorrectionsRay) {
     EXPECT_LE(energy(x), energy(base + 0.875 * (given - base)) + 1e-15) << where;  // no higher than the walk's first step
     EXPECT_LT((x - (base + s * (given - base))).lpNorm<Eigen::Infinity>(), 1e-12) << where;
     for (size_t d = 0; d < start.held.size(); ++d) {
-      if (start.held[d]) ASSERT_EQ(x[static_cast<Eigen::Index>(d)], given[static_cast<Eigen::Index>(d)]) << where;
+      if (start.held[d]) {
+        ASSERT_EQ(x[static_cast<Eigen::Index>(d)], given[static_cast<Eigen::Index>(d)]) << where;
+      }
     }
     if (overshoot == 3.0) {
       EXPECT_LT(s, 0.75) << where;  // at least two steps back
