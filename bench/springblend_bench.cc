@@ -22,6 +22,7 @@
 #include <chrono>
 #include <cmath>
 #include <cstdio>
+#include <cstring>
 #include <cstdlib>
 #include <ctime>
 #include <exception>
@@ -242,6 +243,7 @@ struct Pass {
   // largest distance between consecutive frames over the linear blend's distance between them.
   int minima = 0, converged = 0;
   double continuity = 0.0;
+  std::vector<Points> positions;  // each frame's answer (surface), in the order of `frame`
 
   // Figures over the sweep's frames 1..N-1 (frame 0, the rest shape, only starts a sweep).
   std::vector<double> StepMs() const {
@@ -291,6 +293,21 @@ struct MethodResult {
     return std::nullopt;
   }
   bool ok() const { return (!alone || alone->all_converged()) && (!sweep || sweep->all_converged()); }
+  // Frames whose answer alone (a fresh Solver) and in the sweep (after the frames before it) are the same to
+  // the bit: a frame's answer is a function of its request alone. Empty without both passes.
+  std::optional<std::pair<int, int>> same_alone_and_in_order() const {
+    if (!alone || !sweep) return std::nullopt;
+    int same = 0, compared = 0;
+    for (size_t i = 0; i < alone->frame.size(); ++i) {
+      const size_t k = static_cast<size_t>(alone->frame[i]);
+      if (k >= sweep->positions.size() || i >= alone->positions.size()) continue;
+      ++compared;
+      const Points& a = alone->positions[i];
+      const Points& b = sweep->positions[k];
+      same += a.rows() == b.rows() && std::memcmp(a.data(), b.data(), sizeof(double) * a.size()) == 0 ? 1 : 0;
+    }
+    return std::make_pair(same, compared);
+  }
 };
 
 struct RowResult {
@@ -359,6 +376,7 @@ Pass SweepPass(const std::shared_ptr<const Rig>& rig, const SolveOptions& option
     pass.ms.push_back(MsSince(start) - summary.certify_ms);
     pass.frame.push_back(static_cast<int>(i));
     pass.summaries.push_back(summary);
+    pass.positions.push_back(frame_positions);
     if (positions != nullptr) positions->push_back(frame_positions);
     if (reference != nullptr) {
       pass.accuracy = std::max(pass.accuracy, Distance(frame_positions, (*reference)[i], diagonal));
@@ -383,6 +401,7 @@ Pass AlonePass(const std::shared_ptr<const Rig>& rig, const SolveOptions& option
     pass.ms.push_back(MsSince(start) - summary.certify_ms);
     pass.frame.push_back(static_cast<int>(i));
     pass.summaries.push_back(summary);
+    pass.positions.push_back(frame_positions);
     if (summary.termination == Termination::kConverged) {
       ++pass.converged;
       pass.minima += summary.minimum == MinimumCheck::kMinimum ? 1 : 0;
@@ -682,7 +701,7 @@ std::string RowLine(const RowResult& r) {
 const std::vector<std::string> kMethodColumns = {
     "row", "method", "alone ms median", "alone p95", "alone max", "sweep ms/step", "speed-up", "Newton it",
     "CG it", "L-BFGS it", "fallbacks", "factorizations", "spring ms", "solve ms", "search ms", "factor ms",
-    "accuracy", "start error", "minima", "jump", "terminations"};
+    "accuracy", "start error", "minima", "jump", "alone = in order", "terminations"};
 
 std::string MethodLine(const RowResult& r, const MethodResult& m) {
   const auto f1 = [](double v) { return fmt::format("{:.1f}", v); };
@@ -726,6 +745,7 @@ std::string MethodLine(const RowResult& r, const MethodResult& m) {
       Cell(m.start_error(), [](double a) { return fmt::format("{:.1e}", a); }),
       m.alone ? fmt::format("{}/{}", m.alone->minima, m.alone->converged) : std::string("-"),
       m.alone ? fmt::format("{:.2f}", m.alone->continuity) : std::string("-"),
+      Cell(m.same_alone_and_in_order(), [](const std::pair<int, int>& p) { return fmt::format("{}/{}", p.first, p.second); }),
       TerminationCell(m),
   };
   return fmt::format("| {} |", fmt::join(cells, " | "));
@@ -762,7 +782,10 @@ std::string MarkdownReport(const Machine& machine, const Settings& settings, con
       "over the method's alone median. Accuracy: max over frames (alone and sweep) of the max vertex distance "
       "to a reference of the same frames (direct Newton, residual and step tolerance 1e-12){}, over the "
       "bounding-box diagonal. Start error: the same for the frames' starts (Solver::Start: the linear blend plus "
-      "the target paths' corrections), before any iteration: how close the prediction alone is.{}\n\n",
+      "the target paths' corrections), before any iteration: how close the prediction alone is. Minima: alone "
+      "frames whose true Hessian's Cholesky succeeds at the answer, of those converged; jump: the largest "
+      "distance between consecutive alone frames over the linear blend's between them; alone = in order: frames "
+      "whose answer alone and in the sweep (after every frame before it) is the same to the bit.{}\n\n",
       settings.steps, settings.steps - 1, settings.quick ? " (skipped: --quick)" : "",
       settings.profile ? " --profile: only the first method's sweep." : "");
   md += Header(kMethodColumns);
@@ -873,6 +896,10 @@ json RowJson(const RowResult& r) {
                        {"sweep", OrNull(m.sweep, PassJson)},
                        {"accuracy", OrNull(m.accuracy(), identity)},
                        {"start_error", OrNull(m.start_error(), identity)},
+                       {"alone_equals_in_order", OrNull(m.same_alone_and_in_order(),
+                                                        [](const std::pair<int, int>& p) {
+                                                          return json{{"same", p.first}, {"compared", p.second}};
+                                                        })},
                        {"speedup_over_baseline", speedup}});
   }
   return {{"name", r.name},
