@@ -277,6 +277,52 @@ TEST(TargetPaths, ALocalFinishGivesTheSameEquilibriumWithEitherBackend) {
   EXPECT_GE(partial, 2);  // the frames did need a region solved
 }
 
+// The region's Hessian is the rig's own pattern restricted to the region and assembled in place: with single
+// coordinates of the most out-of-balance vertices held as well (a gauge, a pin's plane), the region's Newton
+// still converges as Newton does (one to three iterations a round from a start this close), leaves every held
+// coordinate where it was, and lands where the other backend's region solve lands.
+TEST(TargetPaths, ALocalFinishHoldsSingleCoordinatesAndConvergesAsNewtonDoes) {
+  const auto rig = Bump();
+  const double diagonal = rig->summary().bounding_box_diagonal;
+  int checked = 0;
+  for (double a : {0.37, 0.83}) {
+    Eigen::VectorXd answers[2];
+    const LinearSolverType backends[2] = {LinearSolverType::kCholmodSupernodal, LinearSolverType::kEigenSimplicial};
+    for (int b = 0; b < 2; ++b) {
+      FrameStart start(*rig, {a});
+      // Hold x of the five vertices pushed hardest, y of the next five.
+      start.springs.Evaluate(start.x, start.held, internal::Curvature{}, false);
+      const Eigen::VectorXd& force = start.springs.force();
+      std::vector<int> order(static_cast<size_t>(rig->num_vertices()));
+      for (size_t v = 0; v < order.size(); ++v) order[v] = static_cast<int>(v);
+      const auto push = [&](int v) { return force.segment<3>(3 * v).norm(); };
+      std::stable_sort(order.begin(), order.end(), [&](int p, int q) { return push(p) > push(q); });
+      for (int k = 0; k < 10; ++k) start.held[3 * static_cast<size_t>(order[k]) + (k < 5 ? 0 : 1)] = 1;
+      const Eigen::VectorXd before = start.x;
+      internal::LocalFinishOptions options;
+      options.residual_tolerance = 1e-9;
+      options.step_tolerance = 1e-11;
+      options.linear_solver = backends[b];
+      const internal::LocalFinishResult result =
+          internal::LocalFinish(&start.springs, start.held, start.conditions.diagonal_shift, diagonal,
+                                rig->summary().mean_rest_length, options, nullptr, &start.x);
+      ASSERT_TRUE(result.converged) << "alpha " << a << " backend " << b << ": " << result.why;
+      ASSERT_GT(result.vertices, 0) << "alpha " << a;
+      EXPECT_LE(result.iterations, 3 * result.rounds) << "alpha " << a << " backend " << b;
+      for (size_t d = 0; d < start.held.size(); ++d) {
+        if (start.held[d]) {
+          ASSERT_EQ(start.x[static_cast<Eigen::Index>(d)], before[static_cast<Eigen::Index>(d)]) << "coordinate " << d;
+        }
+      }
+      EXPECT_LE(start.springs.Evaluate(start.x, start.held, internal::Curvature{}, false), 1e-9);
+      answers[b] = start.x;
+    }
+    EXPECT_LE((answers[0] - answers[1]).lpNorm<Eigen::Infinity>() / diagonal, 1e-8) << "alpha " << a;
+    ++checked;
+  }
+  EXPECT_EQ(checked, 2);
+}
+
 // The span step on a coarser path (16 steps per unit: its interpolant starts frames out of balance): it lowers
 // the energy, never moves a held coordinate, brings the start closer to the frame's tight equilibrium, is
 // deterministic, and leaves mixes, frames without a path and starts already in balance alone.
