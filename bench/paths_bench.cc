@@ -109,6 +109,7 @@ struct Settings {
   int targets_measured = 2;  // frames are measured on the first this many targets of a row
   bool reference = true;
   bool span = true;  // SolveOptions::path_span_step for the path frames
+  double local_finish_share = SolveOptions{}.local_finish_share;  // SolveOptions::local_finish_share
   bool spool = false;  // RigBuildControl::spool_directory (the output directory) for the builds
   RigOptions rig;  // the paths' options (--path-*)
 };
@@ -224,6 +225,7 @@ json RunRow(const RowSpec& spec, const Settings& settings) {
   const double diagonal = s.bounding_box_diagonal;
   SolveOptions shipped;
   shipped.path_span_step = settings.span;
+  shipped.local_finish_share = settings.local_finish_share;
   SolveOptions full = shipped;
   full.local_finish = false;
   full.path_span_step = false;  // the baseline: Newton from the interpolant
@@ -248,9 +250,9 @@ json RunRow(const RowSpec& spec, const Settings& settings) {
       Points p, f, r;
       // The frame's start (the paths' interpolant) from samples held and from samples read from the file.
       for (int pass = 0; pass < 2; ++pass) {
-        const auto start = Clock::now();
+        const auto clock = Clock::now();
         const Points from = (pass == 0 ? full_solver : path_solver).Start(frame.weights);
-        (pass == 0 ? start_memory_ms : start_file_ms).push_back(MsSince(start));
+        (pass == 0 ? start_memory_ms : start_file_ms).push_back(MsSince(clock));
       }
       const SolveSummary ps = path_solver.Solve(frame, &p);
       const SolveSummary fs_ = full_solver.Solve(frame, &f);
@@ -346,6 +348,9 @@ int main(int argc, char** argv) {
   app.add_option("--out", settings.out, "output directory");
   app.add_flag("!--no-reference", settings.reference, "skip the tight reference (no accuracy column)");
   app.add_flag("!--no-path-span", settings.span, "path frames without the span step (SolveOptions::path_span_step)");
+  app.add_option("--local-finish-share", settings.local_finish_share,
+                 "largest share of the vertices a path frame's local finish may solve (SolveOptions::local_finish_share)")
+      ->check(CLI::Range(0.0, 1.0));
   app.add_flag("--spool", settings.spool,
                "builds leave each path in a spool file in --out as it is solved (RigBuildControl::spool_directory), "
                "as the server's do");

@@ -13,6 +13,10 @@ namespace springblend::internal {
 
 namespace {
 
+// A diagonal block's upper triangle: (0,0) (0,1) (0,2) (1,1) (1,2) (2,2), as HessianPattern::vertex_slots.
+constexpr int kRow[6] = {0, 0, 0, 1, 1, 2};
+constexpr int kCol[6] = {0, 1, 2, 1, 2, 2};
+
 // Newton on the free coordinates of the region's vertices, everything else held where it is.
 class RegionNewton {
  public:
@@ -92,8 +96,6 @@ class RegionNewton {
         for (int cj = 0; cj < 3; ++cj) spring_entries_[e][ci * 3 + cj] = entry(3 * a + ci, 3 * b + cj);
       }
     }
-    static constexpr int kRow[6] = {0, 0, 0, 1, 1, 2};
-    static constexpr int kCol[6] = {0, 1, 2, 1, 2, 2};
     vertex_entries_.resize(region.size());
     for (size_t r = 0; r < region.size(); ++r) {
       for (int i = 0; i < 6; ++i) vertex_entries_[r][i] = entry(3 * region[r] + kRow[i], 3 * region[r] + kCol[i]);
@@ -216,8 +218,6 @@ class RegionNewton {
         if (const int at = spring_entries_[e][i]; at >= 0) values_[at] = -h(i / 3, i % 3);
       }
     }
-    static constexpr int kRow[6] = {0, 0, 0, 1, 1, 2};
-    static constexpr int kCol[6] = {0, 1, 2, 1, 2, 2};
     for (size_t v = 0; v < region_.size(); ++v) {
       Eigen::Matrix3d h = Eigen::Matrix3d::Zero();
       for (int e = topology_.vertex_spring_offsets[region_[v]]; e < topology_.vertex_spring_offsets[region_[v] + 1]; ++e) {
