@@ -44,7 +44,6 @@ class RegionNewton {
     for (int q : springs_in_) spring_marked_[q] = 0;
     coordinates_.clear();
     springs_in_.clear();
-    region_ = region;
     for (int v : region) {
       for (int c = 0; c < 3; ++c) {
         const int d = 3 * v + c;
@@ -97,8 +96,18 @@ class RegionNewton {
       }
     }
     vertex_entries_.resize(region.size());
+    vertex_block_starts_.assign(1, 0);
+    vertex_blocks_.clear();
     for (size_t r = 0; r < region.size(); ++r) {
       for (int i = 0; i < 6; ++i) vertex_entries_[r][i] = entry(3 * region[r] + kRow[i], 3 * region[r] + kCol[i]);
+      // Its springs' places in springs_in_ (every spring of a region vertex is there), in the full assembly's
+      // order.
+      const int v = region[r];
+      for (int e = topology_.vertex_spring_offsets[v]; e < topology_.vertex_spring_offsets[v + 1]; ++e) {
+        const auto at = std::lower_bound(springs_in_.begin(), springs_in_.end(), topology_.vertex_springs[e]);
+        vertex_blocks_.push_back(static_cast<int>(at - springs_in_.begin()));
+      }
+      vertex_block_starts_.push_back(static_cast<int>(vertex_blocks_.size()));
     }
     analysed_ = false;
   }
@@ -218,12 +227,9 @@ class RegionNewton {
         if (const int at = spring_entries_[e][i]; at >= 0) values_[at] = -h(i / 3, i % 3);
       }
     }
-    for (size_t v = 0; v < region_.size(); ++v) {
+    for (size_t v = 0; v < vertex_entries_.size(); ++v) {
       Eigen::Matrix3d h = Eigen::Matrix3d::Zero();
-      for (int e = topology_.vertex_spring_offsets[region_[v]]; e < topology_.vertex_spring_offsets[region_[v] + 1]; ++e) {
-        const int q = topology_.vertex_springs[e];
-        h += blocks_[static_cast<size_t>(std::lower_bound(springs_in_.begin(), springs_in_.end(), q) - springs_in_.begin())];
-      }
+      for (int e = vertex_block_starts_[v]; e < vertex_block_starts_[v + 1]; ++e) h += blocks_[vertex_blocks_[e]];
       for (int i = 0; i < 6; ++i) {
         if (const int at = vertex_entries_[v][i]; at >= 0) values_[at] = h(kRow[i], kCol[i]);
       }
@@ -270,10 +276,10 @@ class RegionNewton {
   std::vector<int> coordinates_;  // the region's unknowns, ascending
   std::vector<char> spring_marked_;
   std::vector<int> springs_in_;   // springs with an endpoint in the region
-  std::vector<int> region_;       // the region's vertices, ascending
   SymmetricPattern pattern_;      // the region's, analysed by cholesky_ (which keeps a pointer to it)
   std::vector<std::array<int, 9>> spring_entries_;  // per spring of springs_in_: block (a, b)'s entries, or -1
   std::vector<std::array<int, 6>> vertex_entries_;  // per region vertex: its diagonal block's upper triangle
+  std::vector<int> vertex_block_starts_, vertex_blocks_;  // per region vertex: its springs' indices in springs_in_
   std::vector<int> diagonal_entries_;
   std::vector<double> values_;    // pattern_'s values
   std::vector<Eigen::Matrix3d> blocks_;  // per spring of springs_in_: its Hessian block

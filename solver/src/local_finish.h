@@ -2,10 +2,11 @@
 // path) is finished where it is out of balance only: Newton on the vertices whose force exceeds the tolerance
 // and a ring around them, every other vertex held at the start; the region grows around any held vertex whose
 // force exceeds the tolerance, until none does, by one ring after the first round and twice as many rings
-// after each round after it (an imbalance that crossed the region's edge once spreads further the next time). The frame then passes the same convergence
-// test as a full solve (largest free force and last Newton step) on every free coordinate, so a local finish
-// certifies the same stationary point a full solve would. It gives up (the caller solves the whole frame)
-// when the region outgrows a share of the vertices, or Newton does not converge in it.
+// after each round after it (an imbalance that crossed the region's edge once spreads further the next time).
+// The frame then passes the same convergence test as a full solve (largest free force and last Newton step) on
+// every free coordinate, so a local finish certifies the same stationary point a full solve would. It gives up
+// (the caller solves the whole frame) when the region outgrows a share of the vertices, or Newton does not
+// converge in it.
 #pragma once
 
 #include <Eigen/Core>
