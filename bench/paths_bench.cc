@@ -176,7 +176,8 @@ json RunRow(const RowSpec& spec, const Settings& settings) {
   json per_target = json::array();
   for (const auto& p : s.paths) {
     per_target.push_back({{"target", p.target}, {"samples", p.samples}, {"solves", p.solves}, {"ms", p.ms},
-                          {"max_error", p.max_error}, {"uncertified", p.uncertified}});
+                          {"max_error", p.max_error}, {"uncertified", p.uncertified}, {"checks", p.checks},
+                          {"local_checks", p.local_checks}, {"uncertified_ranges", p.uncertified_ranges}});
   }
   row["paths"] = per_target;
   std::shared_ptr<const Rig> served = rig;
@@ -235,6 +236,7 @@ json RunRow(const RowSpec& spec, const Settings& settings) {
   tight.max_iterations = 400;
   Solver path_solver(served, shipped), full_solver(rig, full), tight_solver(rig, tight);
   std::vector<double> path_ms, full_ms, accuracy, share, start_memory_ms, start_file_ms;
+  std::vector<double> certified_ms, uncertified_ms;  // path frames where their path is certified, and elsewhere
   int local = 0, frames = 0, converged = 0;
   json frame_rows = json::array();
   const int measured = std::min<int>(settings.targets_measured, rig->num_targets());
@@ -254,19 +256,26 @@ json RunRow(const RowSpec& spec, const Settings& settings) {
         const Points from = (pass == 0 ? full_solver : path_solver).Start(frame.weights);
         (pass == 0 ? start_memory_ms : start_file_ms).push_back(MsSince(clock));
       }
+      // Whether the frame's weight lies where its target's path is certified.
+      bool in_certified = true;
+      for (const auto& summary_path : s.paths) {
+        if (summary_path.target != rig->target_names()[t]) continue;
+        for (const auto& [from, to] : summary_path.uncertified_ranges) in_certified &= !(alpha >= from && alpha <= to);
+      }
       const SolveSummary ps = path_solver.Solve(frame, &p);
       const SolveSummary fs_ = full_solver.Solve(frame, &f);
       ++frames;
       converged += ps.converged() ? 1 : 0;
       local += ps.finish == Finish::kLocal ? 1 : 0;
       path_ms.push_back(ps.solve_ms);
+      (in_certified ? certified_ms : uncertified_ms).push_back(ps.solve_ms);
       full_ms.push_back(fs_.solve_ms);
       share.push_back(ps.free_vertices > 0 ? static_cast<double>(ps.solved_vertices) / ps.free_vertices : 0.0);
       json fr = {{"target", t},          {"alpha", alpha},          {"ms", ps.solve_ms},
                  {"full_ms", fs_.solve_ms}, {"finish", ToString(ps.finish)}, {"solved", ps.solved_vertices},
                  {"free", ps.free_vertices}, {"termination", ToString(ps.termination)},
                  {"note", ps.local_finish_note}, {"newton", ps.newton_iterations},
-                 {"span_vectors", ps.span_vectors}};
+                 {"span_vectors", ps.span_vectors}, {"certified", in_certified}};
       if (settings.reference) {
         const SolveSummary rs = tight_solver.Solve(frame, &r);
         const double a = MaxDistance(p, r) / diagonal;
@@ -288,6 +297,13 @@ json RunRow(const RowSpec& spec, const Settings& settings) {
   row["start_ms_median_file"] = Median(start_file_ms);
   row["path_frame_ms_median"] = Median(path_ms);
   row["path_frame_ms_max"] = path_ms.empty() ? 0.0 : *std::max_element(path_ms.begin(), path_ms.end());
+  row["certified_frames"] = static_cast<int>(certified_ms.size());
+  row["certified_frame_ms_median"] = Median(certified_ms);
+  row["certified_frame_ms_max"] =
+      certified_ms.empty() ? 0.0 : *std::max_element(certified_ms.begin(), certified_ms.end());
+  row["uncertified_frame_ms_median"] = Median(uncertified_ms);
+  row["uncertified_frame_ms_max"] =
+      uncertified_ms.empty() ? 0.0 : *std::max_element(uncertified_ms.begin(), uncertified_ms.end());
   row["full_frame_ms_median"] = Median(full_ms);
   row["full_frame_ms_max"] = full_ms.empty() ? 0.0 : *std::max_element(full_ms.begin(), full_ms.end());
   row["speedup_median"] = Median(path_ms) > 0 ? Median(full_ms) / Median(path_ms) : 0.0;
@@ -301,9 +317,9 @@ std::string Table(const json& rows) {
   std::ostringstream out;
   out << "| row | vertices | targets | build s | path ms/target | samples/target | max certified error | "
          "uncertified | path MB | rig MB w/o paths | resident MB | build peak MB | restart: resident MB / path MB held / in file | restart: build + first frame s | start ms, paths held / in file | path frame ms "
-         "median / max | full solve ms median / max | speed-up | local | share solved | accuracy |\n";
+         "median / max | certified: frames, ms median / max | elsewhere: ms median / max | full solve ms median / max | speed-up | local | share solved | accuracy |\n";
   out << "| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | "
-         "---: | ---: | ---: |\n";
+         "---: | ---: | ---: | ---: | ---: |\n";
   for (const json& r : rows) {
     if (r.contains("skipped")) {
       out << fmt::format("| {} | skipped: {} |\n", r["row"].get<std::string>(), r["skipped"].get<std::string>());
@@ -313,7 +329,7 @@ std::string Table(const json& rows) {
     double path_ms_sum = 0.0;
     for (const auto& p : r["paths"]) path_ms_sum += p["ms"].get<double>();
     out << fmt::format(
-        "| {} | {} | {} | {:.1f} | {:.0f} | {:.1f} | {:.1e} | {} | {:.1f} | {:.1f} | {:.0f} | {:.0f}{} | {:.0f} / {:.2f} / {:.1f} | {:.2f} | {:.2f} / {:.2f} | {:.1f} / {:.1f} | "
+        "| {} | {} | {} | {:.1f} | {:.0f} | {:.1f} | {:.1e} | {} | {:.1f} | {:.1f} | {:.0f} | {:.0f}{} | {:.0f} / {:.2f} / {:.1f} | {:.2f} | {:.2f} / {:.2f} | {:.1f} / {:.1f} | {} / {}, {:.1f} / {:.1f} | {:.1f} / {:.1f} | "
         "{:.0f} / {:.0f} | {:.0f}x | {}/{} | {:.3f} | {:.1e} |\n",
         r["row"].get<std::string>(), r["vertices"].get<int>(), r["targets"].get<int>(),
         r["build_ms"].get<double>() / 1000.0, path_ms_sum / with_paths,
@@ -324,7 +340,10 @@ std::string Table(const json& rows) {
         r.value("reload_path_mb_in_file", 0.0),
         (r.value("reload_ms", 0.0) + r.value("reload_first_frame_ms", 0.0)) / 1000.0,
         r.value("start_ms_median_memory", 0.0), r.value("start_ms_median_file", 0.0), r["path_frame_ms_median"].get<double>(),
-        r["path_frame_ms_max"].get<double>(), r["full_frame_ms_median"].get<double>(),
+        r["path_frame_ms_max"].get<double>(), r.value("certified_frames", 0), r["frames"].get<int>(),
+        r.value("certified_frame_ms_median", 0.0), r.value("certified_frame_ms_max", 0.0),
+        r.value("uncertified_frame_ms_median", 0.0), r.value("uncertified_frame_ms_max", 0.0),
+        r["full_frame_ms_median"].get<double>(),
         r["full_frame_ms_max"].get<double>(), r["speedup_median"].get<double>(), r["frames_local"].get<int>(),
         r["frames"].get<int>(), r["share_median"].get<double>(), r["accuracy_max"].get<double>());
   }

@@ -280,7 +280,8 @@ std::shared_ptr<const Rig> RigBuilder::Build(TriangleMesh rest, std::vector<Targ
       s.path_bytes += path.bytes();
       s.path_file_bytes += path.stored_bytes();
       s.paths.push_back({rig->target_names_[t], path.samples(), path.solves, path.uncertified(), path.max_error,
-                         s.paths_loaded ? 0.0 : path.build_ms});
+                         s.paths_loaded ? 0.0 : path.build_ms, path.checks, path.local_checks,
+                         path.UncertifiedRanges()});
     }
     if (s.uncertified_path_intervals > 0) {
       s.notes.push_back(fmt::format(

@@ -18,6 +18,7 @@
 
 #include "conjugate_gradients.h"
 #include "frame_conditions.h"
+#include "local_finish.h"
 #include "minimizer.h"
 #include "rig_internals.h"
 #include "rigid.h"
@@ -34,6 +35,12 @@ constexpr int kMaxHalvings = 3;
 // 2081 with 6, the build 55 s against 62 s, 35 uncertified intervals against 50, 7 of 17 frames finished
 // locally against 5.
 constexpr int kCheckIterations = 3;
+// A midpoint check first takes one Newton step in the span of the path's samples and tangents around it (as a
+// path frame does) and is then finished where it is out of balance only (local_finish.h), at the samples'
+// tolerances; where that gives up (more than kCheckSeedShare of the vertices still out of balance after the
+// step, or a region beyond kCheckLocalShare of them), the capped full Newton goes on from there.
+constexpr double kCheckSeedShare = 0.05;
+constexpr double kCheckLocalShare = 0.15;
 // A sample solved this far (of the diagonal) from its predicted start jumped to another branch.
 constexpr double kJump = 1e-3;
 constexpr std::uint8_t kUnchecked = 255;
@@ -534,6 +541,7 @@ class PathSolver {
   int solves = 0;  // equilibria solved (tentative ones that failed not counted)
   int newton_iterations = 0;
   int tangent_cg_iterations = 0;
+  int local_checks = 0;  // midpoint checks finished locally
 
   // Solves alpha * target coming from `from` (the previous sample): where the continuation step is too long
   // for Newton to converge, it is halved (up to three times) and the path followed through the midpoints,
@@ -556,7 +564,7 @@ class PathSolver {
   // max_iterations > 0 caps the Newton iterations (a midpoint check: an interpolant Newton does not finish
   // from in a few iterations is not in its equilibrium's basin, whatever that equilibrium is).
   Sample Solve(double alpha, Continuation* continuation, const Eigen::MatrixXd* correction, bool tentative = false,
-               int max_iterations = 0) {
+               int max_iterations = 0, const TargetPath* around = nullptr) {
     if (stop_ != nullptr && *stop_ && (*stop_)()) {
       ThrowCancelled();
     }
@@ -611,13 +619,15 @@ class PathSolver {
       problem.stop = stop_;
       MinimizerTiming timing;
       problem.timing = &timing;
-      if (max_iterations > 0) {
-        MinimizerOptions capped = sample_options_;
-        capped.max_iterations = max_iterations;
-        minimizer_->SetOptions(capped);
+      if (around == nullptr || !FinishLocally(alpha, conditions, *around, &x, &summary)) {
+        if (max_iterations > 0) {
+          MinimizerOptions capped = sample_options_;
+          capped.max_iterations = max_iterations;
+          minimizer_->SetOptions(capped);
+        }
+        minimizer_->Minimize(problem, &x, &summary);
+        if (max_iterations > 0) minimizer_->SetOptions(sample_options_);
       }
-      minimizer_->Minimize(problem, &x, &summary);
-      if (max_iterations > 0) minimizer_->SetOptions(sample_options_);
     }
     if (summary.termination == MinimizerTermination::kCancelled) {
       ThrowCancelled();
@@ -665,6 +675,43 @@ class PathSolver {
             jumped,
             false,
             two_words};
+  }
+
+  // A midpoint check's start x (the interpolant at alpha) finished as a path frame is: one Newton step in the
+  // span of the path's samples and tangents around alpha, then Newton where it is still out of balance only,
+  // to the samples' tolerances (the full convergence test on every free coordinate). x only moves to lower
+  // energy, so where this gives up (false) the full Newton goes on from x.
+  bool FinishLocally(double alpha, const FrameConditions& conditions, const TargetPath& around, Eigen::VectorXd* x,
+                     MinimizerSummary* summary) {
+    const std::vector<const PathField*> columns = SpanAround(around, alpha);
+    if (!columns.empty() && springs_.Evaluate(*x, held_, Curvature{}, true) > sample_options_.residual_tolerance) {
+      SpringSystem::Columns w(x->size(), static_cast<Eigen::Index>(columns.size()));
+      for (size_t j = 0; j < columns.size(); ++j) FillColumn(*columns[j], conditions.motion, &w, static_cast<int>(j));
+      StepInSpan(std::move(w), &springs_, held_, conditions.diagonal_shift, x);
+    }
+    LocalFinishOptions finish;
+    finish.residual_tolerance = sample_options_.residual_tolerance;
+    finish.step_tolerance = sample_options_.step_tolerance;
+    finish.max_share = kCheckLocalShare;
+    finish.max_seed_share = kCheckSeedShare;
+    finish.linear_solver = rig_.options().linear_solver == LinearSolverType::kMumpsSingle
+                               ? LinearSolverType::kCholmodSupernodal
+                               : rig_.options().linear_solver;
+    const LocalFinishResult result =
+        LocalFinish(&springs_, held_, conditions.diagonal_shift, rig_.summary().bounding_box_diagonal,
+                    rig_.summary().mean_rest_length, finish, stop_, x);
+    if (stop_ != nullptr && *stop_ && (*stop_)()) ThrowCancelled();
+    if (!result.converged) {
+      newton_iterations += result.iterations;
+      return false;
+    }
+    summary->iterations = result.iterations;
+    ++local_checks;
+    summary->termination = MinimizerTermination::kConverged;
+    summary->residual = result.residual;
+    summary->last_step = result.last_step;
+    summary->energy = springs_.Energy(*x);
+    return true;
   }
 
   // Whether a sample's correction (anchor's frame) needs two words (PathField): stored in one, the frame at
@@ -912,13 +959,17 @@ void BuildPath(const Rig& rig, int target, const TargetPathsOptions& options, Ta
         if (b - a <= min_width) continue;
         Eigen::MatrixXd predicted;
         EvaluatePath(*path, 0.5 * (a + b), &predicted);
-        checks[c] = on.Solve(0.5 * (a + b), nullptr, &predicted, false, kCheckIterations);
+        checks[c] = on.Solve(0.5 * (a + b), nullptr, &predicted, false, kCheckIterations, path);
         check_errors[c] = checks[c].converged ? Distance(predicted, checks[c].correction) / diagonal
                                               : std::numeric_limits<double>::infinity();
       }
     };
     const size_t half = to_solve.size() / 2;
     tbb::parallel_invoke([&] { check(solver, 0, half); }, [&] { check(side, half, to_solve.size()); });
+    for (size_t t = 0; t < to_solve.size(); ++t) {
+      const int i = unchecked[to_solve[t]];
+      path->checks += path->alphas[i + 1] - path->alphas[i] > min_width ? 1 : 0;
+    }
     ThrowIfCancelled();
     std::vector<int> split;
     std::vector<Sample> added;
@@ -934,11 +985,13 @@ void BuildPath(const Rig& rig, int target, const TargetPathsOptions& options, Ta
       } else if (error <= options.tolerance) {
         path->certified[i] = 1;
       } else if (path->samples() + static_cast<int>(added.size()) >= options.max_samples ||
-                 (!looked_up && (!std::isfinite(error) || (parent_error[i] > 0.0 && error > 0.25 * parent_error[i])))) {
+                 (!looked_up && (!std::isfinite(error) || 0.5 * (b - a) <= min_width ||
+                                 (parent_error[i] > 0.0 && error > 0.25 * parent_error[i])))) {
         // The path has all the samples it may have; or Newton did not finish from the interpolant within a
         // few iterations, or halving the interval did not bring the error down as a smooth path's would (by
         // 8 to 16): the equilibria there are not one smooth branch (a fold, a kink, nearby minima), and more
-        // samples would not certify it. Frames there finish by a full solve when the local one fails.
+        // samples would not certify it; or its halves would be too narrow to be checked. Frames there finish by
+        // a full solve when the local one fails.
         path->certified[i] = 0;
       } else {
         split.push_back(i);
@@ -1029,6 +1082,7 @@ void BuildPath(const Rig& rig, int target, const TargetPathsOptions& options, Ta
   path->solves = solver.solves + side.solves;
   path->newton_iterations = solver.newton_iterations + side.newton_iterations;
   path->tangent_cg_iterations = solver.tangent_cg_iterations + side.tangent_cg_iterations;
+  path->local_checks = solver.local_checks + side.local_checks;
   path->build_ms = Elapsed(start);
 }
 
@@ -1037,6 +1091,19 @@ void BuildPath(const Rig& rig, int target, const TargetPathsOptions& options, Ta
 int TargetPath::uncertified() const {
   return static_cast<int>(std::count(certified.begin(), certified.end(), std::uint8_t{0}) +
                           std::count(certified.begin(), certified.end(), kFold));
+}
+
+std::vector<std::pair<double, double>> TargetPath::UncertifiedRanges() const {
+  std::vector<std::pair<double, double>> ranges;
+  for (size_t i = 0; i < certified.size() && i + 1 < alphas.size(); ++i) {
+    if (certified[i] != 0 && certified[i] != kFold) continue;
+    if (!ranges.empty() && ranges.back().second == alphas[i]) {
+      ranges.back().second = alphas[i + 1];
+    } else {
+      ranges.emplace_back(alphas[i], alphas[i + 1]);
+    }
+  }
+  return ranges;
 }
 
 std::int64_t TargetPath::bytes() const {

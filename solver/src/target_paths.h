@@ -56,10 +56,14 @@ struct TargetPath {
   int solves = 0;           // equilibria solved for it (samples and checks)
   int newton_iterations = 0;
   int tangent_cg_iterations = 0;  // conjugate-gradient iterations of the exact tangents' solves
+  int checks = 0;           // midpoint checks solved (among the solves)
+  int local_checks = 0;     // of them, finished where the interpolant was out of balance only
   int unconverged = 0;      // samples whose solve did not converge (kept as the best found)
   bool empty() const { return corrections.empty(); }
   int samples() const { return static_cast<int>(alphas.size()); }
   int uncertified() const;  // intervals whose check did not pass, and folds (the branch switch not counted)
+  // Those intervals' weights, neighbours merged, ascending.
+  std::vector<std::pair<double, double>> UncertifiedRanges() const;
   std::int64_t bytes() const;         // memory it holds
   std::int64_t stored_bytes() const;  // its fields' words left in a file (ParseTargetPaths from a file)
 };

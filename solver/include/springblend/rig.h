@@ -11,6 +11,7 @@
 #include <optional>
 #include <string>
 #include <string_view>
+#include <utility>
 #include <vector>
 
 #include "springblend/mesh.h"
@@ -166,6 +167,11 @@ struct RigSummary {
     int uncertified = 0;
     double max_error = 0.0;  // of the diagonal
     double ms = 0.0;         // wall time of its build (0 when loaded)
+    int checks = 0;          // midpoint checks solved (0 when loaded)
+    int local_checks = 0;    // of them, finished where the interpolant was out of balance only
+    // The target's weights where its path is not certified (a check that did not pass, a fold; neighbouring
+    // intervals merged), ascending: a frame there starts farther from its answer and may need a full solve.
+    std::vector<std::pair<double, double>> uncertified_ranges;
   };
   std::vector<TargetPathSummary> paths;  // one per target with a path
   double precompute_ms = 0.0;
