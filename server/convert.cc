@@ -436,6 +436,22 @@ v1::Character ToProto(const CharacterStore::Entry& entry, bool cache_hit) {
   out->set_path_bytes(static_cast<std::uint64_t>(s.path_bytes));
   out->set_path_file_bytes(static_cast<std::uint64_t>(s.path_file_bytes));
   out->set_rig_bytes(static_cast<std::uint64_t>(s.rig_bytes));
+  for (const auto& path : s.paths) {
+    v1::TargetPathSummary* p = out->add_paths();
+    p->set_target(path.target);
+    p->set_samples(static_cast<std::uint32_t>(path.samples));
+    p->set_solves(static_cast<std::uint32_t>(path.solves));
+    p->set_uncertified(static_cast<std::uint32_t>(path.uncertified));
+    p->set_max_error(path.max_error);
+    p->set_ms(path.ms);
+    p->set_checks(static_cast<std::uint32_t>(path.checks));
+    p->set_local_checks(static_cast<std::uint32_t>(path.local_checks));
+    for (const auto& [from, to] : path.uncertified_ranges) {
+      v1::WeightRange* range = p->add_uncertified_ranges();
+      range->set_from(from);
+      range->set_to(to);
+    }
+  }
   return c;
 }
 

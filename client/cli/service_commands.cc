@@ -321,6 +321,19 @@ int RunDescribe(const RemoteArgs& args) {
   out["path_bytes"] = s.path_bytes();
   out["path_file_bytes"] = s.path_file_bytes();
   out["rig_bytes"] = s.rig_bytes();
+  nlohmann::json paths = nlohmann::json::array();
+  for (const v1::TargetPathSummary& p : s.paths()) {
+    nlohmann::json ranges = nlohmann::json::array();
+    for (const v1::WeightRange& r : p.uncertified_ranges()) ranges.push_back({r.from(), r.to()});
+    paths.push_back({{"target", p.target()},
+                     {"samples", p.samples()},
+                     {"solves", p.solves()},
+                     {"ms", p.ms()},
+                     {"max_error", p.max_error()},
+                     {"uncertified", p.uncertified()},
+                     {"uncertified_ranges", ranges}});
+  }
+  out["paths"] = paths;
   if (c.state() == v1::CHARACTER_STATE_BUILDING) {
     const v1::BuildProgress& p = c.build();
     out["build"] = {{"stage", p.stage()},           {"targets", p.targets()},

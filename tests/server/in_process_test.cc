@@ -427,6 +427,21 @@ TEST_F(InProcessServerTest, ARestartedServerLoadsThePathsAndServesTheSameFrames)
   EXPECT_GT(built.path_bytes(), 0u);
   EXPECT_GT(built.rig_bytes(), 0u);
   EXPECT_GE(built.path_max_error(), 0.0);
+  // Per target: its name, samples and build time; the summary's totals are their sums.
+  ASSERT_EQ(built.paths_size(), static_cast<int>(cylinder_.targets.size()));
+  std::uint32_t samples = 0, uncertified = 0;
+  for (int t = 0; t < built.paths_size(); ++t) {
+    const v1::TargetPathSummary& p = built.paths(t);
+    EXPECT_EQ(p.target(), first.target_names(t));
+    EXPECT_GT(p.ms(), 0.0);
+    EXPECT_LE(p.local_checks(), p.checks());
+    EXPECT_LE(p.max_error(), built.path_max_error());
+    EXPECT_LE(p.uncertified_ranges_size(), static_cast<int>(p.uncertified()));
+    samples += p.samples();
+    uncertified += p.uncertified();
+  }
+  EXPECT_EQ(samples, built.path_samples());
+  EXPECT_EQ(uncertified, built.uncertified_path_intervals());
   // The samples were written to the cache file as soon as they were solved, and are read from there.
   EXPECT_GT(built.path_file_bytes(), 20 * built.path_bytes());
   std::vector<v1::SolvedFrame> before, after;
@@ -440,6 +455,19 @@ TEST_F(InProcessServerTest, ARestartedServerLoadsThePathsAndServesTheSameFrames)
   EXPECT_EQ(again.summary().path_samples(), built.path_samples());
   EXPECT_EQ(again.summary().uncertified_path_intervals(), built.uncertified_path_intervals());
   EXPECT_EQ(again.summary().path_ms(), 0.0) << "nothing solved";
+  ASSERT_EQ(again.summary().paths_size(), built.paths_size());
+  for (int t = 0; t < built.paths_size(); ++t) {
+    const v1::TargetPathSummary& loaded = again.summary().paths(t);
+    EXPECT_EQ(loaded.target(), built.paths(t).target());
+    EXPECT_EQ(loaded.samples(), built.paths(t).samples());
+    EXPECT_EQ(loaded.ms(), 0.0);
+    // Where frames may need a full solve is part of what the cache file keeps.
+    ASSERT_EQ(loaded.uncertified_ranges_size(), built.paths(t).uncertified_ranges_size());
+    for (int r = 0; r < loaded.uncertified_ranges_size(); ++r) {
+      EXPECT_EQ(loaded.uncertified_ranges(r).from(), built.paths(t).uncertified_ranges(r).from());
+      EXPECT_EQ(loaded.uncertified_ranges(r).to(), built.paths(t).uncertified_ranges(r).to());
+    }
+  }
   EXPECT_EQ(again.summary().path_file_bytes(), built.path_file_bytes());
   EXPECT_EQ(again.summary().path_bytes(), built.path_bytes());
   client_->Solve(Sweep(first.id(), 5), [&](const v1::SolvedFrame& f) { after.push_back(f); });
