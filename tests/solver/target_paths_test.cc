@@ -906,6 +906,21 @@ TEST(TargetPaths, AMixStartsAtTheLowestEnergyOnItsCorrectionsRay) {
   EXPECT_EQ(first, second);
 }
 
+// Where a path is not certified: the intervals whose check did not pass (0) and folds (3), neighbours merged;
+// certified intervals (1) and the switch between branches (2) are not among them.
+TEST(TargetPaths, UncertifiedRangesMergeNeighbouringIntervals) {
+  internal::TargetPath path;
+  path.alphas = {-0.25, 0.0, 0.5, 0.75, 1.0, 1.1, 1.25};
+  path.certified = {0, 3, 1, 0, 2, 0};
+  using Ranges = std::vector<std::pair<double, double>>;
+  EXPECT_EQ(path.UncertifiedRanges(), (Ranges{{-0.25, 0.5}, {0.75, 1.0}, {1.1, 1.25}}));
+  EXPECT_EQ(path.uncertified(), 4);
+  path.certified = {1, 1, 2, 1, 1, 1};
+  EXPECT_TRUE(path.UncertifiedRanges().empty());
+  path.certified = {3, 3, 3, 3, 3, 3};
+  EXPECT_EQ(path.UncertifiedRanges(), (Ranges{{-0.25, 1.25}}));
+}
+
 TEST(TargetPaths, OptionsOutOfRangeAreRefused) {
   RigOptions options;
   options.path_tolerance = 0.0;
