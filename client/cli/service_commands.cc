@@ -328,6 +328,8 @@ int RunDescribe(const RemoteArgs& args) {
     paths.push_back({{"target", p.target()},
                      {"samples", p.samples()},
                      {"solves", p.solves()},
+                     {"checks", p.checks()},
+                     {"local_checks", p.local_checks()},
                      {"ms", p.ms()},
                      {"max_error", p.max_error()},
                      {"uncertified", p.uncertified()},

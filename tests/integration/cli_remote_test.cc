@@ -90,6 +90,20 @@ TEST_F(CliRemoteTest, SpringblendServerIsTheDefaultAddressOfEveryCommand) {
   const CliRun solve =
       RunCli("solve --character " + id + " --weights 0.5,0.5 --timeout 60 --out " + dir_.File("frames"), dir_, env);
   EXPECT_EQ(solve.exit_code, 0) << solve.stderr_text;
+  // Each target's path, and the weights where it is not certified (pairs of weights).
+  const CliRun described = RunCli("describe --character " + id, dir_, env);
+  ASSERT_EQ(described.exit_code, 0) << described.stderr_text;
+  const nlohmann::json& paths = described.lines.at(0)["paths"];
+  EXPECT_EQ(paths.size(), described.lines.at(0)["targets"].size());
+  for (const nlohmann::json& p : paths) {
+    EXPECT_GT(p["samples"].get<int>(), 0);
+    EXPECT_GT(p["ms"].get<double>(), 0.0);
+    EXPECT_LE(p["local_checks"].get<int>(), p["checks"].get<int>());
+    for (const nlohmann::json& range : p["uncertified_ranges"]) {
+      ASSERT_EQ(range.size(), 2u);
+      EXPECT_LT(range[0].get<double>(), range[1].get<double>());
+    }
+  }
   const CliRun health = RunCli("health --timeout 10", dir_, env);
   EXPECT_EQ(health.exit_code, 0) << health.stderr_text;
   EXPECT_EQ(health.lines.at(0)["status"], "SERVING");
@@ -294,6 +308,7 @@ TEST_F(CliRemoteTest, CharactersAreNamedByIdPrefixOrNameAndDescribed) {
     EXPECT_EQ(d["faces"], 800);
     EXPECT_FALSE(d["interior"].get<std::string>().empty());
     EXPECT_GT(d["precompute_ms"].get<double>(), 0.0);
+    EXPECT_EQ(d["paths"], nlohmann::json::array()) << "uploaded without target paths";
   }
   const CliRun solved = RunCli("solve --character " + id.substr(0, 12) + " --weights 0.5,0.5 --out " +
                                    dir_.File("frames") + remote,
