@@ -448,8 +448,8 @@ v1::Character ToProto(const CharacterStore::Entry& entry, bool cache_hit) {
     p->set_local_checks(static_cast<std::uint32_t>(path.local_checks));
     for (const auto& [from, to] : path.uncertified_ranges) {
       v1::WeightRange* range = p->add_uncertified_ranges();
-      range->set_from(from);
-      range->set_to(to);
+      range->set_low(from);
+      range->set_high(to);
     }
   }
   return c;

@@ -324,7 +324,7 @@ int RunDescribe(const RemoteArgs& args) {
   nlohmann::json paths = nlohmann::json::array();
   for (const v1::TargetPathSummary& p : s.paths()) {
     nlohmann::json ranges = nlohmann::json::array();
-    for (const v1::WeightRange& r : p.uncertified_ranges()) ranges.push_back({r.from(), r.to()});
+    for (const v1::WeightRange& r : p.uncertified_ranges()) ranges.push_back({r.low(), r.high()});
     paths.push_back({{"target", p.target()},
                      {"samples", p.samples()},
                      {"solves", p.solves()},

@@ -206,6 +206,13 @@ class RigUploadTest(unittest.TestCase):
         self.assertEqual(recorder.routes, ids)
         self.assertEqual(len(set(ids)), 6)
         self.assertLessEqual(dense.summary.path_samples, 2 * 40)  # two targets, at most 40 samples each
+        # Each target's path, and where it is not certified, as weights low to high.
+        self.assertEqual([p.target for p in dense.summary.paths], list(targets))
+        self.assertEqual(sum(p.samples for p in dense.summary.paths), dense.summary.path_samples)
+        for path in dense.summary.paths:
+            self.assertLessEqual(len(path.uncertified_ranges), path.uncertified)
+            for weights in path.uncertified_ranges:
+                self.assertLess(weights.low, weights.high)
 
     def test_server_refusals_name_the_rig_file(self):
         rig = rigfile.load_rig(RIG)

@@ -464,8 +464,8 @@ TEST_F(InProcessServerTest, ARestartedServerLoadsThePathsAndServesTheSameFrames)
     // Where frames may need a full solve is part of what the cache file keeps.
     ASSERT_EQ(loaded.uncertified_ranges_size(), built.paths(t).uncertified_ranges_size());
     for (int r = 0; r < loaded.uncertified_ranges_size(); ++r) {
-      EXPECT_EQ(loaded.uncertified_ranges(r).from(), built.paths(t).uncertified_ranges(r).from());
-      EXPECT_EQ(loaded.uncertified_ranges(r).to(), built.paths(t).uncertified_ranges(r).to());
+      EXPECT_EQ(loaded.uncertified_ranges(r).low(), built.paths(t).uncertified_ranges(r).low());
+      EXPECT_EQ(loaded.uncertified_ranges(r).high(), built.paths(t).uncertified_ranges(r).high());
     }
   }
   EXPECT_EQ(again.summary().path_file_bytes(), built.path_file_bytes());
