@@ -36,6 +36,13 @@ struct LocalFinishOptions {
   LinearSolverType linear_solver = LinearSolverType::kCholmodSupernodal;
 };
 
+// The backend that factors a region for a rig solved with `rig_solver`: MUMPS here is single precision (and one
+// lock serialises it across threads), so a MUMPS rig's regions are factored by CHOLMOD; any other backend factors
+// its own.
+inline LinearSolverType RegionLinearSolver(LinearSolverType rig_solver) {
+  return rig_solver == LinearSolverType::kMumpsSingle ? LinearSolverType::kCholmodSupernodal : rig_solver;
+}
+
 struct LocalFinishResult {
   bool converged = false;
   int vertices = 0;      // in the final region (0: the start was in balance already)

@@ -234,11 +234,8 @@ SolveSummary Solver::Impl::Solve(const Frame& frame, Points* positions, const st
     local.max_step_fraction = options_.max_step_fraction;
     local.max_line_search_steps = options_.max_line_search_steps;
     local.max_share = options_.local_finish_share;
-    // The region's steps are direct solves: in double precision (MUMPS here is single precision, and one lock
-    // serialises it across threads), so a MUMPS rig's regions are factored by CHOLMOD.
-    local.linear_solver = rig.options().linear_solver == LinearSolverType::kMumpsSingle
-                              ? LinearSolverType::kCholmodSupernodal
-                              : rig.options().linear_solver;
+    // The region's steps are direct solves, in double precision.
+    local.linear_solver = internal::RegionLinearSolver(rig.options().linear_solver);
     // The span step: first where the start is out of balance at many vertices (a local region that large
     // costs more than the step: the local finish gives up at once), else once a local finish gave up; the
     // second try starts from the frame's start again (a region a try left part way to balance has forces

@@ -283,6 +283,22 @@ int StepInSpan(SpringSystem::Columns w, SpringSystem* springs, const std::vector
   return 0;
 }
 
+// The span step at alpha on one target's path (RefineInPathSpan): where x is out of balance, one Newton step on
+// the coefficients of the path's samples and tangents around alpha. Returns the span's dimension, or 0.
+int RefineInSpanOf(const TargetPath& path, double alpha, const std::optional<AnchorMotion>& motion,
+                   double residual_tolerance, SpringSystem* springs, const std::vector<char>& held,
+                   double diagonal_shift, Eigen::VectorXd* x) {
+  const std::vector<const PathField*> columns = SpanAround(path, alpha);
+  // The forces first (the Hessian blocks only once the step is taken).
+  const double start_residual = springs->Evaluate(*x, held, Curvature{}, false);
+  if (!(start_residual > residual_tolerance)) return 0;
+  springs->Evaluate(*x, held, Curvature{}, true);
+  const int k = static_cast<int>(columns.size());
+  SpringSystem::Columns w(x->size(), k);
+  for (int j = 0; j < k; ++j) FillColumn(*columns[j], motion, &w, j);
+  return StepInSpan(std::move(w), springs, held, diagonal_shift, x);
+}
+
 struct Sample {
   double alpha = 0.0;
   Eigen::MatrixXd correction;  // anchor's frame
@@ -683,20 +699,14 @@ class PathSolver {
   // energy, so where this gives up (false) the full Newton goes on from x.
   bool FinishLocally(double alpha, const FrameConditions& conditions, const TargetPath& around, Eigen::VectorXd* x,
                      MinimizerSummary* summary) {
-    const std::vector<const PathField*> columns = SpanAround(around, alpha);
-    if (!columns.empty() && springs_.Evaluate(*x, held_, Curvature{}, true) > sample_options_.residual_tolerance) {
-      SpringSystem::Columns w(x->size(), static_cast<Eigen::Index>(columns.size()));
-      for (size_t j = 0; j < columns.size(); ++j) FillColumn(*columns[j], conditions.motion, &w, static_cast<int>(j));
-      StepInSpan(std::move(w), &springs_, held_, conditions.diagonal_shift, x);
-    }
+    RefineInSpanOf(around, alpha, conditions.motion, sample_options_.residual_tolerance, &springs_, held_,
+                   conditions.diagonal_shift, x);
     LocalFinishOptions finish;
     finish.residual_tolerance = sample_options_.residual_tolerance;
     finish.step_tolerance = sample_options_.step_tolerance;
     finish.max_share = kCheckLocalShare;
     finish.max_seed_share = kCheckSeedShare;
-    finish.linear_solver = rig_.options().linear_solver == LinearSolverType::kMumpsSingle
-                               ? LinearSolverType::kCholmodSupernodal
-                               : rig_.options().linear_solver;
+    finish.linear_solver = RegionLinearSolver(rig_.options().linear_solver);
     const LocalFinishResult result =
         LocalFinish(&springs_, held_, conditions.diagonal_shift, rig_.summary().bounding_box_diagonal,
                     rig_.summary().mean_rest_length, finish, stop_, x);
@@ -1260,15 +1270,7 @@ int RefineInPathSpan(const std::vector<TargetPath>& paths, const std::vector<dou
                      const std::vector<char>& held, double diagonal_shift, Eigen::VectorXd* x) {
   if (!HasPathSpan(paths, weights)) return 0;
   const int moved = MovedTarget(weights);
-  const std::vector<const PathField*> columns = SpanAround(paths[moved], weights[moved]);
-  // The forces first (the Hessian blocks only once the step is taken).
-  const double start_residual = springs->Evaluate(*x, held, Curvature{}, false);
-  if (!(start_residual > residual_tolerance)) return 0;
-  springs->Evaluate(*x, held, Curvature{}, true);
-  const int k = static_cast<int>(columns.size());
-  SpringSystem::Columns w(x->size(), k);
-  for (int j = 0; j < k; ++j) FillColumn(*columns[j], motion, &w, j);
-  return StepInSpan(std::move(w), springs, held, diagonal_shift, x);
+  return RefineInSpanOf(paths[moved], weights[moved], motion, residual_tolerance, springs, held, diagonal_shift, x);
 }
 
 namespace {
