@@ -154,9 +154,9 @@ json RunRow(const RowSpec& spec, const Settings& settings) {
     fs::create_directories(settings.out);
     build.spool_directory = settings.out.string();
   }
-  const auto start = Clock::now();
+  const auto build_start = Clock::now();
   const std::shared_ptr<const Rig> rig = Rig::Build(std::move(rest), std::move(targets), settings.rig, build);
-  row["build_ms"] = MsSince(start);
+  row["build_ms"] = MsSince(build_start);
   const auto peak = StatusMb("VmHWM");
   if (peak_reset && before && peak) row["build_peak_mb"] = std::max(0.0, *peak - *before);
   malloc_trim(0);
