@@ -16,7 +16,8 @@ cd "$(dirname "$0")/.."
 bash deploy/install-deps.sh
 cmake -S . -B build/bench -G Ninja -DCMAKE_BUILD_TYPE=Release -DSPRINGBLEND_BUILD_BENCH=ON \
   -DSPRINGBLEND_BUILD_TESTS=OFF > /dev/null
-cmake --build build/bench --target springblend-bench springblend-paths-bench springblend-bake-bench springblend \
+cmake --build build/bench --target springblend-bench springblend-paths-bench springblend-bake-bench \
+  springblend-take-bench springblend \
   springblend-server springblend-tetgen springblend_python -j "$(nproc)"
 # The profile and the slider drag read the shared meshes from the same place as springblend-bench.
 shared="$(cd .. && pwd)/shared/meshes"
@@ -39,6 +40,15 @@ build/bench/bench/springblend-paths-bench --out bench-results --shared "$shared"
 # About ten minutes.
 build/bench/bench/springblend-paths-bench --rows face-52 --frames 5 --targets 1 --no-reference --spool \
   --out bench-results/face-52 --shared "$shared" || status=$?
+# A face driven by a captured take: the shared face's 55 expressions uploaded as a user would (the build's time
+# reported; about 13 minutes on two cores, its paths kept in bench-results/take for reruns), 120 consecutive frames
+# of the shared Live Link Face take solved with the default (superposed) mix, and every sixth of them with the
+# paper's blend of rest lengths (seconds a frame): ms, Newton iterations, pops, distance from the linear blend,
+# certified minima; the worst frame of each as OBJ beside its linear blend.
+build/bench/bench/springblend-take-bench --out bench-results/take --cache bench-results/take/face55.paths \
+  --first 1500 --count 120 --models superposed || status=$?
+build/bench/bench/springblend-take-bench --out bench-results/take-paper --cache bench-results/take/face55.paths \
+  --first 1500 --count 20 --stride 6 --models superposed,rest-lengths || status=$?
 # Baked plain rigs (bake-rig) against solved frames: single targets at held-out weights, pairs, five-target mixes.
 build/bench/bench/springblend-bake-bench --out bench-results --shared "$shared" || status=$?
 bash bench/profile.sh build/bench bench-results face 12 newton "$shared" || status=$?

@@ -462,6 +462,11 @@ void ToOptions(const v1::SolveOptions& o, SolveJob* job) {
   job->with_normals = o.with_normals();
   job->options.certify_minimum = o.certify_minimum();
   try {
+    if (!o.mix().empty()) job->options.mix = MixModelFromString(o.mix());
+    if (o.has_linear_targets()) {
+      job->options.linear_targets = std::vector<std::string>(o.linear_targets().names().begin(),
+                                                             o.linear_targets().names().end());
+    }
     job->options.Validate();
   } catch (const Error& e) {
     Invalid(std::string("options: ") + e.what());

@@ -6,6 +6,7 @@
 #include <sstream>
 #include <iostream>
 #include <memory>
+#include <optional>
 #include <nlohmann/json.hpp>
 #include <string>
 #include <utility>
@@ -34,6 +35,8 @@ struct BlendArgs {
   int sweep = 0;
   bool linear = false;
   bool certify = false;
+  std::string mix = ToString(SolveOptions{}.mix);
+  std::optional<std::vector<std::string>> linear_targets;
   std::vector<int> fixed;
   double static_tolerance = RigOptions{}.static_tolerance;
   bool no_bending = false;
@@ -130,6 +133,11 @@ int RunBlend(const BlendArgs& args) {
   options.use_target_paths = !args.no_target_paths;
   options.linear = args.linear;
   options.certify_minimum = args.certify;
+  options.mix = MixModelFromString(args.mix);
+  if (args.linear_targets) {
+    options.linear_targets = *args.linear_targets;
+    if (options.linear_targets->size() == 1 && options.linear_targets->front() == "none") options.linear_targets->clear();
+  }
   options.method = SolveMethodFromString(args.method);
   if (args.hessian == "projected") {
     options.hessian = HessianMode::kProjected;
@@ -238,6 +246,14 @@ Runner AddBlendCommand(CLI::App& app) {
   cmd->add_flag("--certify", args->certify,
                 "check that each converged answer is a local minimum (one factorization of the true Hessian): the "
                 "frame's JSON line says \"minimum\": \"minimum\" or \"not_a_minimum\"");
+  cmd->add_option("--mix", args->mix,
+                  "how a frame that moves several targets combines them: superposed (the linear blend plus each "
+                  "target's own physical correction) or rest-lengths (the paper's blend of rest lengths)")
+      ->capture_default_str();
+  cmd->add_option("--linear-targets", args->linear_targets,
+                  "with the superposed mix, targets added as linear deltas (correctives), comma-separated, or none "
+                  "(default: mouthClose where the rig has it)")
+      ->delimiter(',');
   cmd->add_option("--fixed", args->fixed, "vertex indices (0-based) held as boundary conditions")
       ->delimiter(',');
   cmd->add_option("--static-tolerance", args->static_tolerance,

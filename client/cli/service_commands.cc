@@ -9,6 +9,7 @@
 #include <fstream>
 #include <iostream>
 #include <memory>
+#include <optional>
 #include <nlohmann/json.hpp>
 #include <sstream>
 
@@ -43,6 +44,8 @@ struct RemoteArgs {
   double tolerance = 0.0;
   int max_iterations = 0;
   bool linear = false, normals = false, certify = false;
+  std::string mix;  // empty: the server's default
+  std::optional<std::vector<std::string>> linear_targets;  // nullopt: the server's default
 };
 
 v1::Vec3 ToVec3(double x, double y, double z) {
@@ -241,6 +244,13 @@ int RunSolve(const RemoteArgs& args) {
   request.mutable_options()->set_linear(args.linear);
   request.mutable_options()->set_with_normals(args.normals);
   request.mutable_options()->set_certify_minimum(args.certify);
+  request.mutable_options()->set_mix(args.mix);
+  if (args.linear_targets) {
+    auto* names = request.mutable_options()->mutable_linear_targets()->mutable_names();
+    if (!(args.linear_targets->size() == 1 && args.linear_targets->front() == "none")) {
+      for (const auto& name : *args.linear_targets) *names->Add() = name;
+    }
+  }
 
   FrameOutput output(args.out, /*many=*/true, faces, static_cast<int>(character.summary().surface_vertices()),
                      args.timing);
@@ -443,6 +453,13 @@ std::vector<std::pair<std::string, Runner>> AddServiceCommands(CLI::App& app) {
   solve->add_flag("--certify", args->certify,
                   "have the server check that each converged answer is a local minimum (about one factorization "
                   "more per frame): the frame's JSON line says \"minimum\": \"minimum\" or \"not_a_minimum\"");
+  solve->add_option("--mix", args->mix,
+                    "how a frame that moves several targets combines them: superposed (the server's default) or "
+                    "rest-lengths (the paper's blend of rest lengths)");
+  solve->add_option("--linear-targets", args->linear_targets,
+                    "with the superposed mix, targets added as linear deltas (correctives), comma-separated, or none "
+                    "(the server's default: mouthClose where the character has it)")
+      ->delimiter(',');
   runners.emplace_back("solve", Guarded("solve", args, RunSolve));
 
   CLI::App* list = app.add_subcommand("list", "list the server's characters as JSON lines");

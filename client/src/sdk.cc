@@ -274,6 +274,11 @@ int Client::Solve(const std::string& character_id, const std::vector<Frame>& fra
   request.mutable_options()->set_linear(options.linear);
   request.mutable_options()->set_with_normals(options.normals);
   request.mutable_options()->set_certify_minimum(options.certify_minimum);
+  request.mutable_options()->set_mix(options.mix);
+  if (options.linear_targets) {
+    auto* names = request.mutable_options()->mutable_linear_targets()->mutable_names();
+    for (const auto& name : *options.linear_targets) *names->Add() = name;
+  }
   return Guard([&] {
     return impl_->client.Solve(request, [&](const v1::SolvedFrame& frame) {
       if (!on_frame) return;

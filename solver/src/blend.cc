@@ -59,6 +59,22 @@ const char* ToString(SolveMethod method) {
   return "unknown";
 }
 
+const char* ToString(MixModel model) {
+  switch (model) {
+    case MixModel::kSuperposed: return "superposed";
+    case MixModel::kRestLengths: return "rest-lengths";
+  }
+  return "unknown";
+}
+
+MixModel MixModelFromString(const std::string& name) {
+  for (MixModel m : {MixModel::kSuperposed, MixModel::kRestLengths}) {
+    if (name == ToString(m)) return m;
+  }
+  throw Error(ErrorCode::kInvalidInput,
+              fmt::format("unknown mix model '{}' (use superposed or rest-lengths)", name));
+}
+
 SolveMethod SolveMethodFromString(const std::string& name) {
   for (SolveMethod m : {SolveMethod::kNewton, SolveMethod::kNewtonLaplacian, SolveMethod::kLbfgs}) {
     if (name == ToString(m)) return m;

@@ -16,6 +16,7 @@
 #include "linear_system.h"
 #include "local_finish.h"
 #include "minimizer.h"
+#include "mix.h"
 #include "frame_conditions.h"
 #include "laplacian.h"
 #include "target_paths.h"
@@ -189,8 +190,20 @@ SolveSummary Solver::Impl::Solve(const Frame& frame, Points* positions, const st
     summary.solve_ms = Elapsed(start);
     return summary;
   }
+  // A mix under the superposed model rests at its prediction (mix.h); every other frame at the paper's lengths.
+  const std::vector<char> linear_targets = internal::LinearTargets(rig, options_);
+  const bool superposed = internal::IsSuperposedMix(options_, linear_targets, frame.weights);
   std::vector<double> rest_lengths;
-  internal::BlendRestLengths(rig, shape_weights, &rest_lengths);
+  Eigen::VectorXd prediction;
+  if (superposed) {
+    const auto mix_start = std::chrono::steady_clock::now();
+    internal::Prediction(rig, frame.weights, linear_targets, options_.use_target_paths, &prediction);
+    internal::SuperposedRestLengths(rig, frame.weights, linear_targets, options_.use_target_paths, prediction,
+                                    &rest_lengths);
+    summary.mix_ms = Elapsed(mix_start);
+  } else {
+    internal::BlendRestLengths(rig, shape_weights, &rest_lengths);
+  }
   springs_.SetRestLengths(std::move(rest_lengths), rig.spring_kind(), internal::KindStiffness(rig.options()),
                           internal::StiffnessFloor(rig));
 
@@ -198,14 +211,19 @@ SolveSummary Solver::Impl::Solve(const Frame& frame, Points* positions, const st
   for (const Pin& pin : frame.pins) pins.emplace_back(pin.vertex, pin.position);
   const internal::FrameConditions conditions = internal::ConditionsOf(rig, shape_weights, linear, pins);
   const BoundaryMode mode = conditions.mode;
-  StartOf(linear, frame.weights, conditions.motion, &x_);
+  if (superposed) {
+    x_ = std::move(prediction);  // the springs' rest state but for the averaged strains: the answer is next to it
+  } else {
+    StartOf(linear, frame.weights, conditions.motion, &x_);
+  }
   if (!internal::HoldConditions(rig, conditions, &x_, &held_)) {
     summary.termination = Termination::kNumericalFailure;
     summary.message = "the gauge vertices became collinear in the start configuration";
     summary.solve_ms = Elapsed(start);
     return summary;
   }
-  if (options_.use_target_paths && options_.scale_mix_start && internal::IsPathMix(rig.internals().paths, frame.weights)) {
+  if (!superposed && options_.use_target_paths && options_.scale_mix_start &&
+      internal::IsPathMix(rig.internals().paths, frame.weights)) {
     Eigen::VectorXd base(x_.size());  // only for mixes: a path frame's start is ready in milliseconds
     for (Eigen::Index d = 0; d < x_.size(); ++d) base[d] = held_[d] ? x_[d] : linear(d / 3, d % 3);
     summary.mix_start_scale = internal::ScaleMixStart(
@@ -240,7 +258,7 @@ SolveSummary Solver::Impl::Solve(const Frame& frame, Points* positions, const st
     // costs more than the step: the local finish gives up at once), else once a local finish gave up; the
     // second try starts from the frame's start again (a region a try left part way to balance has forces
     // below the tolerance but not its error).
-    const bool span = options_.use_target_paths && options_.path_span_step &&
+    const bool span = !superposed && options_.use_target_paths && options_.path_span_step &&
                       internal::HasPathSpan(rig.internals().paths, frame.weights);
     const Eigen::VectorXd frame_start = span ? x_ : Eigen::VectorXd();
     for (int attempt = 0; attempt < 2 && !finished; ++attempt) {
@@ -383,9 +401,15 @@ Points Solver::Start(const std::vector<double>& weights) const {
     motion = internal::BlendAnchorMotions(rig.internals().anchor_motions, shape_weights);
   }
   Eigen::VectorXd x;
-  impl_->StartOf(linear, weights, motion, &x);
   const SolveOptions& options = impl_->options_;
-  if (options.use_target_paths && options.scale_mix_start && !options.linear &&
+  const std::vector<char> linear_targets = internal::LinearTargets(rig, options);
+  const bool superposed = !options.linear && internal::IsSuperposedMix(options, linear_targets, weights);
+  if (superposed) {
+    internal::Prediction(rig, weights, linear_targets, options.use_target_paths, &x);
+  } else {
+    impl_->StartOf(linear, weights, motion, &x);
+  }
+  if (options.use_target_paths && options.scale_mix_start && !options.linear && !superposed &&
       internal::IsPathMix(rig.internals().paths, weights)) {
     // The solve's walk along the corrections' ray, with every vertex free (the held ones are placed later).
     internal::SpringSystem springs(internal::TopologyOf(rig));

@@ -15,6 +15,7 @@
 #include <cstdint>
 #include <functional>
 #include <memory>
+#include <optional>
 #include <stdexcept>
 #include <string>
 #include <utility>
@@ -147,6 +148,12 @@ struct SolveOptions {
   // Certify each converged answer as a local minimum (about one factorization more per frame):
   // SolvedFrame::minimum.
   bool certify_minimum = false;
+  // How a frame that moves several targets combines them: "superposed" (empty: the server's default) or
+  // "rest-lengths" (the paper's blend); SolveOptions.mix in the protocol.
+  std::string mix;
+  // Targets added as linear deltas (correctives) with the superposed mix; nullopt: the server's default
+  // (SolveOptions.linear_targets in the protocol).
+  std::optional<std::vector<std::string>> linear_targets;
 };
 
 struct SolvedFrame {

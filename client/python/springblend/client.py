@@ -337,7 +337,8 @@ class Client:
                         summaries=[f.summary for f in frames])
 
     def solve_frames(self, character_id, weights, colliders=(), collider_transforms=None, pins=None,
-                     tolerance=0.0, max_iterations=0, linear=False, normals=False, certify_minimum=False):
+                     tolerance=0.0, max_iterations=0, linear=False, normals=False, certify_minimum=False, mix="",
+                     linear_targets=None):
         """Streams a Solve: yields one SolvedFrame per frame as the server finishes it.
 
         Args:
@@ -352,13 +353,19 @@ class Client:
             tolerance, max_iterations, linear, normals: SolveOptions (zero means the server's default).
             certify_minimum: have the server check each converged answer is a local minimum (about one
                 factorization more per frame): summary.minimum is "minimum", "not_a_minimum" or "not_checked".
+            mix: how a frame that moves several targets combines them: "superposed" (the server's default, also
+                "") or "rest-lengths" (the paper's blend of rest lengths).
+            linear_targets: None (the server's default correctives, ARKit's mouthClose where the character has
+                it), or the names of the targets added as linear deltas with the superposed mix ([] for none).
         """
         character_id = self.resolve(character_id)
         request = pb.SolveRequest(
             character_id=character_id, colliders=list(colliders),
             options=pb.SolveOptions(residual_tolerance=float(tolerance), max_iterations=int(max_iterations),
                                     linear=bool(linear), with_normals=bool(normals),
-                                    certify_minimum=bool(certify_minimum)),
+                                    certify_minimum=bool(certify_minimum), mix=str(mix),
+                                    linear_targets=(None if linear_targets is None else
+                                                    pb.LinearTargets(names=[str(n) for n in linear_targets]))),
             frames=_frame_requests(self._by_position(character_id, weights), collider_transforms, pins))
         call = self._solves.Solve(request, timeout=self.timeout, metadata=self._metadata(character_id))
         try:

@@ -10,6 +10,7 @@
 #include <cstdint>
 #include <functional>
 #include <memory>
+#include <optional>
 #include <string>
 #include <vector>
 
@@ -57,8 +58,36 @@ enum class SolveMethod {
 const char* ToString(SolveMethod method);
 SolveMethod SolveMethodFromString(const std::string& name);  // "newton" | "newton-laplacian" | "lbfgs"
 
+// How a frame that moves several targets combines them (a frame that moves one target is the paper's in both;
+// solver/src/mix.h has the formulas).
+enum class MixModel {
+  // The frame's prediction is the linear blend plus each target's own physical correction at its weight (its
+  // path, the target alone), and its springs rest at that prediction's lengths plus each target's own residual
+  // strain: deltas add as vectors, each target keeps its own correction (a jaw's rotation), and length changes do
+  // not add up. Faithful where captured faces move 20-40 expressions at once; targets found to be correctives
+  // (RigSummary::TargetPathSummary::corrective) add as linear deltas.
+  kSuperposed,
+  // The paper's blend (section 3.3): r̄_q = r_q^0 + sum_t w_t (r_q^t - r_q^0), every target's length change
+  // added up. Where many targets move the same springs (a mouth) the mix buckles into a shape none of them has.
+  kRestLengths,
+};
+const char* ToString(MixModel model);
+// The targets SolveOptions::linear_targets names when it is not given: ARKit's correctives (Apple's ARKit face
+// tracking defines mouthClose as closing the lips whatever the jaw does: a corrective of jawOpen).
+inline const std::vector<std::string> kDefaultCorrectives = {"mouthClose"};
+MixModel MixModelFromString(const std::string& name);  // "superposed" | "rest-lengths"
+
 struct SolveOptions {
   SolveMethod method = SolveMethod::kNewton;
+  // How several targets combine (MixModel).
+  MixModel mix = MixModel::kSuperposed;
+  // With MixModel::kSuperposed: targets that are correctives rather than shapes of their own (sculpted to be added
+  // to others), added as linear deltas: no physical correction of their own, no residual strain; a frame that
+  // moves one of them alone is its linear blend. Names, matched case-insensitively. Nullopt: the targets
+  // kDefaultCorrectives names, where the rig has them (ARKit's mouthClose closes the lips of an open jaw and is
+  // meant to be added to jawOpen; alone it pushes the lips through each other, and its physical answer at 0.19 is
+  // 1.6 % of the face's diagonal from its sculpt's blend). A given list must name targets of the rig.
+  std::optional<std::vector<std::string>> linear_targets;
   // kLbfgs: (s, y) pairs kept [1, 100], and iterations before Newton takes over [1, 10000].
   int lbfgs_history = 10;
   int lbfgs_max_iterations = 100;
@@ -197,6 +226,7 @@ struct SolveSummary {
   double linear_solve_ms = 0.0;
   double line_search_ms = 0.0;
   double factorize_ms = 0.0;
+  double mix_ms = 0.0;  // the superposed mix's prediction and rest lengths (MixModel::kSuperposed; part of solve_ms)
 
   bool converged() const {
     return termination == Termination::kConverged || termination == Termination::kLinear;

@@ -1,0 +1,132 @@
+// The mixing models of mix.h: the superposed prediction and its rest lengths.
+#include "mix.h"
+
+#include <tbb/blocked_range.h>
+#include <tbb/parallel_for.h>
+
+#include <algorithm>
+#include <cmath>
+#include <cctype>
+#include <string>
+
+#include <fmt/format.h>
+#include <fmt/ranges.h>
+
+#include "frame_conditions.h"
+#include "springblend/error.h"
+#include "rig_internals.h"
+#include "target_paths.h"
+
+namespace springblend::internal {
+
+int SoleTarget(const std::vector<double>& weights) {
+  int sole = -1;
+  for (size_t t = 0; t < weights.size(); ++t) {
+    if (weights[t] == 0.0) continue;
+    if (sole >= 0) return -1;
+    sole = static_cast<int>(t);
+  }
+  return sole;
+}
+
+std::vector<char> LinearTargets(const Rig& rig, const SolveOptions& options) {
+  std::vector<char> linear(rig.num_targets(), 0);
+  const auto lower = [](std::string s) {
+    std::transform(s.begin(), s.end(), s.begin(), [](unsigned char c) { return std::tolower(c); });
+    return s;
+  };
+  const bool given = options.linear_targets.has_value();
+  for (const std::string& name : given ? *options.linear_targets : kDefaultCorrectives) {
+    bool found = false;
+    for (int t = 0; t < rig.num_targets(); ++t) {
+      if (lower(rig.target_names()[t]) == lower(name)) linear[t] = 1, found = true;
+    }
+    if (!found && given) {
+      throw Error(ErrorCode::kInvalidInput,
+                  fmt::format("solve option linear_targets names '{}', which is no target of the rig ({})", name,
+                              fmt::join(rig.target_names(), ", ")));
+    }
+  }
+  return linear;
+}
+
+bool IsSuperposedMix(const SolveOptions& options, const std::vector<char>& linear, const std::vector<double>& weights) {
+  if (options.mix != MixModel::kSuperposed) return false;
+  int moved = 0;
+  bool any_linear = false;
+  for (size_t t = 0; t < weights.size(); ++t) {
+    if (weights[t] == 0.0) continue;
+    ++moved;
+    any_linear = any_linear || (t < linear.size() && linear[t]);
+  }
+  return moved >= 2 || any_linear;
+}
+
+void Prediction(const Rig& rig, const std::vector<double>& weights, const std::vector<char>& linear, bool use_paths,
+                Eigen::VectorXd* y) {
+  const std::vector<double> shape_weights = rig.ShapeWeights(weights);
+  const Points blend = LinearBlendShapes(rig, shape_weights);
+  const int n = static_cast<int>(blend.rows());
+  y->resize(3 * n);
+  for (int v = 0; v < n; ++v) y->segment<3>(3 * v) = blend.row(v).transpose();
+  const FrameConditions conditions = ConditionsOf(rig, shape_weights, blend, {});
+  if (use_paths) {
+    std::vector<double> physical = weights;
+    for (size_t t = 0; t < physical.size() && t < linear.size(); ++t) {
+      if (linear[t]) physical[t] = 0.0;
+    }
+    AddPathCorrections(rig.internals().paths, physical, conditions.motion, y);
+  }
+  for (const auto& [v, p] : conditions.held) y->segment<3>(3 * v) = p;
+}
+
+void SuperposedRestLengths(const Rig& rig, const std::vector<double>& weights, const std::vector<char>& linear,
+                           bool use_paths, const Eigen::VectorXd& y, std::vector<double>* rest_lengths) {
+  const int m = rig.num_springs();
+  const std::vector<int>& a = rig.spring_a();
+  const std::vector<int>& b = rig.spring_b();
+  const std::vector<double>& r0 = rig.rest_lengths();
+  const double floor = rig.options().min_rest_length_fraction * rig.summary().mean_rest_length;
+  // Each moved target alone at its weight: its sculpted shapes' weights (in-betweens blend in) and the
+  // prediction of that single-target frame (its path's equilibrium, to the path's tolerance).
+  struct Alone {
+    std::vector<std::pair<int, double>> shapes;  // sculpted shape, weight (nonzero, changing lengths)
+    Eigen::VectorXd x;
+  };
+  std::vector<int> moved;
+  for (size_t t = 0; t < weights.size(); ++t) {
+    if (weights[t] != 0.0 && !(t < linear.size() && linear[t])) moved.push_back(static_cast<int>(t));
+  }
+  std::vector<Alone> alone(moved.size());
+  tbb::parallel_for(size_t{0}, moved.size(), [&](size_t i) {
+    std::vector<double> single(weights.size(), 0.0);
+    single[moved[i]] = weights[moved[i]];
+    const std::vector<double> shape_weights = rig.ShapeWeights(single);
+    for (int s = 0; s < rig.num_shapes(); ++s) {
+      if (shape_weights[s] != 0.0 && rig.target_changes_lengths(s)) alone[i].shapes.emplace_back(s, shape_weights[s]);
+    }
+    Prediction(rig, single, linear, use_paths, &alone[i].x);
+  });
+  rest_lengths->resize(m);
+  double* out = rest_lengths->data();
+  auto length = [&](const Eigen::VectorXd& x, int q) { return (x.segment<3>(3 * a[q]) - x.segment<3>(3 * b[q])).norm(); };
+  tbb::parallel_for(tbb::blocked_range<int>(0, m, 4096), [&](const tbb::blocked_range<int>& range) {
+    for (int q = range.begin(); q != range.end(); ++q) {
+      // Each target's residual strain here: its own blended rest length (as BlendRestLengths gives it, clamped)
+      // less its length at its own prediction. Averaged with their magnitudes as weights, sum s|s| / sum |s|: one
+      // target's strain exactly where it alone strains the spring, never more than the largest where several do.
+      double weighted = 0.0, magnitude = 0.0;
+      for (const Alone& t : alone) {
+        double own = r0[q];
+        for (const auto& [s, w] : t.shapes) own += w * rig.rest_length_delta(s)[q];
+        const double strain = std::max(own, floor) - length(t.x, q);
+        weighted += strain * std::abs(strain);
+        magnitude += std::abs(strain);
+      }
+      const double strain = magnitude > 0.0 ? weighted / magnitude : 0.0;
+      out[q] = std::max(length(y, q) + strain, floor);
+    }
+  });
+}
+
+}  // namespace springblend::internal

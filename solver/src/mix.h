@@ -1,0 +1,66 @@
+// How several targets combine (SolveOptions::mix). A frame that moves one target is the paper's frame
+// whatever the model: rest lengths r̄ = r^0 + w (r^t - r^0) (its in-betweens blending in), solved from the
+// target's path. Where several targets act at once:
+//
+//  - kRestLengths, the paper's blend (section 3.3): r̄ = r^0 + sum_t w_t (r^t - r^0). Every active target's
+//    length change adds up: where captured faces move 20-40 expressions at once the mouth's springs get rest
+//    lengths far longer than any expression's (the lip seam's 20 times the linear blend's), and the lips buckle
+//    into a shape no expression has, a different way from one frame to the next.
+//
+//  - kSuperposed (the default): the frame's *prediction* is the linear blend plus each target's own physical
+//    correction at its weight (the correction its path solved, the target alone; RigOptions::target_paths),
+//        y(w) = L(w) + sum_t c_t(w_t),
+//    and the rest lengths are y's own edge lengths plus each target's own residual strain at its weight (its
+//    blended rest length less its path's length there: the tension or compression its equilibrium holds),
+//        r̄_q(w) = |y_a - y_b| + (sum_t e_tq |e_tq|) / (sum_t |e_tq|),   e_tq = r̄_q^t(w_t) - |x̃^t_a(w_t) - x̃^t_b(w_t)|,
+//    x̃^t(w_t) = L(w_t e_t) + c_t(w_t): each target's residual strain e_tq, averaged per spring with the strains'
+//    magnitudes as weights. Deltas add as vectors (as the artist sculpted them, and as the linear blend adds
+//    them), each target keeps its own physical correction (a jaw's rotation), and neither length changes nor
+//    strains add up: where one target alone strains a spring it keeps that target's strain exactly, where several
+//    do the average is at most the largest. (Summed, the shell's short springs at the lips, strained 10 % at each
+//    target's own equilibrium, were strained 20-30 % at y and the mix moved 2-4 % of the diagonal away from it
+//    over 40-90 Newton iterations.) For one target, y = x̃^t and r̄ is the paper's exactly; as a second target's
+//    weight goes to 0 its strains and correction vanish and the mix goes to that frame continuously. For a mix
+//    the springs are at rest at y up to the averaged strains: the equilibrium lies next to y, found in a few
+//    Newton steps, and it moves with the weights as y does. Colliders and pins then deform that system
+//    physically, as in the paper.
+//
+// Correctives (targets sculpted to be added to others, as ARKit's mouthClose is for jawOpen: alone it pushes the
+// lips through each other) have no physical shape of their own: their correction is not a rotation the linear
+// blend loses but a buckle. SolveOptions::linear_targets names them (by default ARKit's); under kSuperposed they add
+// as linear deltas (no correction, no residual strain), alone too.
+#pragma once
+
+#include <Eigen/Core>
+#include <optional>
+#include <vector>
+
+#include "anchor.h"
+#include "springblend/rig.h"
+#include "springblend/solve.h"
+
+namespace springblend::internal {
+
+// Which targets add as linear deltas in this frame's mix (one flag per target): SolveOptions::linear_targets, or
+// the default correctives the rig has. Throws Error(kInvalidInput) naming a given name that is no target.
+std::vector<char> LinearTargets(const Rig& rig, const SolveOptions& options);
+
+// Whether the frame's rest lengths come from the superposed model: the mix model says so and two or more targets
+// move, or the one that moves is a linear target (a single physical target's frame is the paper's in every model).
+bool IsSuperposedMix(const SolveOptions& options, const std::vector<char>& linear, const std::vector<double>& weights);
+
+// The frame's prediction y(w) for these target weights: the linear blend of every simulated vertex plus each
+// physical target's path correction at its weight (rotated by the anchor's motion), with the vertices the weights
+// hold (fixed vertices on the linear blend, the anchor on its blended motion) in place; pins are not part of it.
+// use_paths false: the linear blend alone. Stacked 3n.
+void Prediction(const Rig& rig, const std::vector<double>& weights, const std::vector<char>& linear, bool use_paths,
+                Eigen::VectorXd* y);
+
+// The superposed model's rest lengths for a frame, from its prediction y (Prediction of the same weights): y's
+// lengths plus the physical targets' residual strains at their weights averaged per spring with their magnitudes
+// as weights (sum s|s| / sum |s|: a target's own strain where it alone strains the spring, at most the largest
+// where several do), clamped from below as BlendRestLengths clamps them.
+void SuperposedRestLengths(const Rig& rig, const std::vector<double>& weights, const std::vector<char>& linear,
+                           bool use_paths, const Eigen::VectorXd& y, std::vector<double>* rest_lengths);
+
+}  // namespace springblend::internal
