@@ -66,6 +66,8 @@ std::optional<double> g_residual_tolerance, g_step_tolerance;
 std::optional<bool> g_follow_negative_curvature;
 // --mix-start scaled|summed: override SolveOptions::scale_mix_start (every configuration).
 std::optional<bool> g_scale_mix_start;
+// --mix superposed|rest-lengths: override SolveOptions::mix (every configuration).
+std::optional<MixModel> g_mix;
 // --linear-solver: the rigs' sparse Cholesky backend (RigOptions::linear_solver).
 LinearSolverType g_linear_solver = RigOptions{}.linear_solver;
 // --precomputed DIR: each row's target paths kept in DIR/<row>-<backend>.precomputed (Rig::SavePrecomputed) and
@@ -77,6 +79,7 @@ SolveOptions WithTolerances(SolveOptions options) {
   if (g_step_tolerance) options.step_tolerance = *g_step_tolerance;
   if (g_follow_negative_curvature) options.follow_negative_curvature = *g_follow_negative_curvature;
   if (g_scale_mix_start) options.scale_mix_start = *g_scale_mix_start;
+  if (g_mix) options.mix = *g_mix;
   return options;
 }
 
@@ -1081,6 +1084,11 @@ int Main(int argc, char** argv) {
                  "scaled|summed: override SolveOptions::scale_mix_start (a mix frame's start at the lowest energy on "
                  "the ray through its targets' summed path corrections, or the full sum) in every configuration")
       ->check(CLI::IsMember({"scaled", "summed"}));
+  std::string mix;
+  app.add_option("--mix", mix,
+                 "superposed|rest-lengths: override SolveOptions::mix (how a frame that moves several targets combines "
+                 "them) in every configuration")
+      ->check(CLI::IsMember({"superposed", "rest-lengths"}));
   app.add_option("--precomputed", g_precomputed_dir,
                  "directory keeping each row's target paths between runs (a later run loads them instead of solving "
                  "them; its upload column then measures a restart)");
@@ -1095,6 +1103,7 @@ int Main(int argc, char** argv) {
   g_linear_solver = LinearSolverTypeFromString(linear_solver);
   if (!negative_curvature.empty()) g_follow_negative_curvature = negative_curvature == "on";
   if (!mix_start.empty()) g_scale_mix_start = mix_start == "scaled";
+  if (!mix.empty()) g_mix = MixModelFromString(mix);
   if (settings.quick && steps->count() == 0) settings.steps = 6;
   if (settings.shared.empty()) settings.shared = settings.repo / ".." / "shared" / "meshes";
   if (settings.methods.empty()) {

@@ -72,6 +72,7 @@ struct Settings {
   bool verbose = false;
   bool per_target = false;
   RigOptions rig;
+  std::string method = "newton";
 };
 
 int Run(const Settings& settings) {
@@ -164,9 +165,11 @@ int Run(const Settings& settings) {
   fs::create_directories(settings.out);
   fmt::print("\n| model | converged | minima | ms median | ms p95 | ms max | Newton median | Newton max | pops | worst "
              "step ratio | from linear median | p95 | max |\n|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|\n");
+  int first_worst = -1;
   for (const std::string& model : settings.models) {
     SolveOptions options;
     options.mix = MixModelFromString(model);
+    options.method = SolveMethodFromString(settings.method);
     options.certify_minimum = settings.certify;
     Solver solver(rig, options);
     std::vector<Points> solved(frames.size());
@@ -215,6 +218,14 @@ int Run(const Settings& settings) {
                      {"distance_max", Percentile(distance, 100)}, {"worst_frame", settings.first + settings.stride * static_cast<int>(worst)}};
     WriteObj(settings.out / fmt::format("take-{}-worst.obj", model), solved[worst], rest);
     WriteObj(settings.out / fmt::format("take-{}-worst-linear.obj", model), linear[worst], rest);
+    // Every model's answer at the first model's worst frame, for a picture of one frame (docs/render_take_figure.py).
+    if (first_worst < 0) first_worst = static_cast<int>(worst);
+    WriteObj(settings.out / fmt::format("take-{}-at-{}.obj", model, settings.first + settings.stride * first_worst),
+             solved[first_worst], rest);
+    if (&model == &settings.models.front()) {
+      WriteObj(settings.out / fmt::format("take-linear-at-{}.obj", settings.first + settings.stride * first_worst),
+               linear[first_worst], rest);
+    }
   }
   std::ofstream(settings.out / "take.json") << report.dump(2) << "\n";
   return 0;
@@ -241,6 +252,7 @@ int main(int argc, char** argv) {
   app.add_flag("!--no-certify", settings.certify, "skip the local-minimum certificate");
   app.add_flag("--hold-outer-rim,!--no-hold-outer-rim", settings.rig.hold_outer_rim,
                "hold the open surface's outer rim on the linear blend (RigOptions::hold_outer_rim)");
+  app.add_option("--method", settings.method, "newton, newton-laplacian or lbfgs (SolveOptions::method)");
   app.add_flag("--per-target", settings.per_target, "each target of the first frame alone: its start and answer");
   app.add_flag("--verbose", settings.verbose, "a line per frame: its start's and answer's distances, residual, iterations");
   CLI11_PARSE(app, argc, argv);

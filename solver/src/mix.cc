@@ -62,6 +62,29 @@ bool IsSuperposedMix(const SolveOptions& options, const std::vector<char>& linea
   return moved >= 2 || any_linear;
 }
 
+namespace {
+
+// Each target's share of its own physical correction and strain in this frame: 0 for a linear target; where a
+// sculpted combination it drives is on, 1 - its weight (its product of drivers' weights, at most 1) for each such
+// combination: at every driver 1 the artist's sculpt is the whole answer, as in the paper's blend.
+std::vector<double> PhysicalFactors(const Rig& rig, const std::vector<double>& weights, const std::vector<char>& linear) {
+  std::vector<double> factor(weights.size(), 1.0);
+  for (size_t t = 0; t < factor.size() && t < linear.size(); ++t) {
+    if (linear[t]) factor[t] = 0.0;
+  }
+  for (const auto& combination : rig.internals().controls.combinations) {
+    double product = 1.0;
+    for (int d : combination.drivers) product *= d < static_cast<int>(weights.size()) ? weights[d] : 0.0;
+    const double fade = 1.0 - std::min(1.0, std::abs(product));
+    for (int d : combination.drivers) {
+      if (d < static_cast<int>(factor.size())) factor[d] *= fade;
+    }
+  }
+  return factor;
+}
+
+}  // namespace
+
 void Prediction(const Rig& rig, const std::vector<double>& weights, const std::vector<char>& linear, bool use_paths,
                 Eigen::VectorXd* y) {
   const std::vector<double> shape_weights = rig.ShapeWeights(weights);
@@ -71,11 +94,8 @@ void Prediction(const Rig& rig, const std::vector<double>& weights, const std::v
   for (int v = 0; v < n; ++v) y->segment<3>(3 * v) = blend.row(v).transpose();
   const FrameConditions conditions = ConditionsOf(rig, shape_weights, blend, {});
   if (use_paths) {
-    std::vector<double> physical = weights;
-    for (size_t t = 0; t < physical.size() && t < linear.size(); ++t) {
-      if (linear[t]) physical[t] = 0.0;
-    }
-    AddPathCorrections(rig.internals().paths, physical, conditions.motion, y);
+    const std::vector<double> factors = PhysicalFactors(rig, weights, linear);
+    AddPathCorrections(rig.internals().paths, weights, conditions.motion, y, &factors);
   }
   for (const auto& [v, p] : conditions.held) y->segment<3>(3 * v) = p;
 }
@@ -92,10 +112,12 @@ void SuperposedRestLengths(const Rig& rig, const std::vector<double>& weights, c
   struct Alone {
     std::vector<std::pair<int, double>> shapes;  // sculpted shape, weight (nonzero, changing lengths)
     Eigen::VectorXd x;
+    double factor = 1.0;
   };
+  const std::vector<double> factors = PhysicalFactors(rig, weights, linear);
   std::vector<int> moved;
   for (size_t t = 0; t < weights.size(); ++t) {
-    if (weights[t] != 0.0 && !(t < linear.size() && linear[t])) moved.push_back(static_cast<int>(t));
+    if (weights[t] != 0.0 && factors[t] != 0.0) moved.push_back(static_cast<int>(t));
   }
   std::vector<Alone> alone(moved.size());
   tbb::parallel_for(size_t{0}, moved.size(), [&](size_t i) {
@@ -106,6 +128,7 @@ void SuperposedRestLengths(const Rig& rig, const std::vector<double>& weights, c
       if (shape_weights[s] != 0.0 && rig.target_changes_lengths(s)) alone[i].shapes.emplace_back(s, shape_weights[s]);
     }
     Prediction(rig, single, linear, use_paths, &alone[i].x);
+    alone[i].factor = factors[moved[i]];
   });
   rest_lengths->resize(m);
   double* out = rest_lengths->data();
@@ -119,7 +142,7 @@ void SuperposedRestLengths(const Rig& rig, const std::vector<double>& weights, c
       for (const Alone& t : alone) {
         double own = r0[q];
         for (const auto& [s, w] : t.shapes) own += w * rig.rest_length_delta(s)[q];
-        const double strain = std::max(own, floor) - length(t.x, q);
+        const double strain = t.factor * (std::max(own, floor) - length(t.x, q));
         weighted += strain * std::abs(strain);
         magnitude += std::abs(strain);
       }

@@ -25,6 +25,10 @@
 //    Newton steps, and it moves with the weights as y does. Colliders and pins then deform that system
 //    physically, as in the paper.
 //
+// A sculpted combination (a rig file's corrective driven by the product of its drivers' weights) takes over from
+// its drivers' physical corrections and strains as its weight grows (each driver's scaled by 1 - that weight): at
+// every driver 1 the sculpt is the answer, as in the paper's blend.
+//
 // Correctives (targets sculpted to be added to others, as ARKit's mouthClose is for jawOpen: alone it pushes the
 // lips through each other) have no physical shape of their own: their correction is not a rotation the linear
 // blend loses but a buckle. SolveOptions::linear_targets names them (by default ARKit's); under kSuperposed they add

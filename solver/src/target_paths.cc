@@ -1187,19 +1187,21 @@ void EvaluatePath(const TargetPath& path, double alpha, Eigen::MatrixXd* correct
 }
 
 void AddPathCorrections(const std::vector<TargetPath>& paths, const std::vector<double>& weights,
-                        const std::optional<AnchorMotion>& motion, Eigen::VectorXd* x) {
+                        const std::optional<AnchorMotion>& motion, Eigen::VectorXd* x,
+                        const std::vector<double>* scale) {
   const Eigen::Index n = x->size() / 3;
   Eigen::MatrixXd sum = Eigen::MatrixXd::Zero(n, 3);
   bool any = false;
   for (size_t t = 0; t < paths.size() && t < weights.size(); ++t) {
     const TargetPath& path = paths[t];
-    if (path.empty() || weights[t] == 0.0) continue;
+    const double factor = scale != nullptr && t < scale->size() ? (*scale)[t] : 1.0;
+    if (path.empty() || weights[t] == 0.0 || factor == 0.0) continue;
     const Stencil stencil = StencilAt(path, weights[t]);
     for (int i = 0; i < stencil.count; ++i) {
-      path.corrections[stencil.sample[i]].AddTo(stencil.weight[i], &sum);
+      path.corrections[stencil.sample[i]].AddTo(factor * stencil.weight[i], &sum);
     }
     for (int i = 0; i < stencil.tangent_count; ++i) {
-      path.tangents[stencil.tangent_sample[i]].AddTo(stencil.tangent_weight[i], &sum);
+      path.tangents[stencil.tangent_sample[i]].AddTo(factor * stencil.tangent_weight[i], &sum);
     }
     any = true;
   }

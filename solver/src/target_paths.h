@@ -117,8 +117,10 @@ double ScaleMixStart(const std::vector<TargetPath>& paths, const std::vector<dou
 
 // x += sum_t R correction_t(w_t), stacked 3n, over the targets' frame weights, rotated by the frame's anchor
 // rotation R.
+// `scale`: null, or a factor per target on its correction (0 leaves it out).
 void AddPathCorrections(const std::vector<TargetPath>& paths, const std::vector<double>& weights,
-                        const std::optional<AnchorMotion>& motion, Eigen::VectorXd* x);
+                        const std::optional<AnchorMotion>& motion, Eigen::VectorXd* x,
+                        const std::vector<double>* scale = nullptr);
 
 // Whether a frame with these weights moves one target only, and that target has a path (RefineInPathSpan's
 // frames).
