@@ -71,8 +71,8 @@ def main():
     scene.render.engine = "BLENDER_WORKBENCH"
     scene.display.shading.light = "STUDIO"
     scene.display.shading.color_type = "VERTEX"
-    scene.render.resolution_x = 480 * len(panels)
-    scene.render.resolution_y = 640
+    scene.render.resolution_x = 360 * len(panels)
+    scene.render.resolution_y = 480
     scene.render.film_transparent = False
     scene.world = bpy.data.worlds.new("world")
     centre = linear.mean(0)
@@ -85,6 +85,8 @@ def main():
     camera.location = (centre[0] + width * (len(panels) - 1) / 2.0, centre[1], centre[2] + 3.0 * diagonal)
     camera.rotation_euler = (0.0, 0.0, 0.0)
     scene.camera = camera
+    scene.render.image_settings.color_mode = "RGB"
+    scene.render.image_settings.compression = 100
     scene.render.filepath = args.out
     bpy.ops.render.render(write_still=True)
     print(f"wrote {args.out}: {', '.join(name for name, _ in panels)}")
