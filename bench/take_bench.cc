@@ -73,6 +73,7 @@ struct Settings {
   bool per_target = false;
   RigOptions rig;
   std::string method = "newton";
+  double local_finish_share = SolveOptions{}.local_finish_share;
 };
 
 int Run(const Settings& settings) {
@@ -170,6 +171,7 @@ int Run(const Settings& settings) {
     SolveOptions options;
     options.mix = MixModelFromString(model);
     options.method = SolveMethodFromString(settings.method);
+    options.local_finish_share = settings.local_finish_share;
     options.certify_minimum = settings.certify;
     Solver solver(rig, options);
     std::vector<Points> solved(frames.size());
@@ -252,6 +254,8 @@ int main(int argc, char** argv) {
   app.add_flag("!--no-certify", settings.certify, "skip the local-minimum certificate");
   app.add_flag("--hold-outer-rim,!--no-hold-outer-rim", settings.rig.hold_outer_rim,
                "hold the open surface's outer rim on the linear blend (RigOptions::hold_outer_rim)");
+  app.add_option("--local-finish-share", settings.local_finish_share,
+                 "largest share of the vertices a local finish may solve (SolveOptions::local_finish_share)");
   app.add_option("--method", settings.method, "newton, newton-laplacian or lbfgs (SolveOptions::method)");
   app.add_flag("--per-target", settings.per_target, "each target of the first frame alone: its start and answer");
   app.add_flag("--verbose", settings.verbose, "a line per frame: its start's and answer's distances, residual, iterations");

@@ -627,6 +627,11 @@ SolveJob ToSolveJob(const v1::SolveRequest& request, const Rig& rig, const Limit
     throw LimitError(fmt::format("{} frames is over the limit of {} (--max-frames)", request.frames_size(), limits.max_frames));
   }
   ToOptions(request.options(), &job);
+  try {
+    ValidateOptions(rig, job.options);
+  } catch (const Error& e) {
+    Invalid(std::string("options: ") + e.what());
+  }
   job.colliders = ToColliders(request.colliders(), limits, stopped);
   for (int f = 0; f < request.frames_size(); ++f) {
     if (f % 1024 == 0 && stopped && stopped()) throw CancelledError(fmt::format("stopped while reading frames[{}]", f));

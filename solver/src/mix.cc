@@ -50,6 +50,19 @@ std::vector<char> LinearTargets(const Rig& rig, const SolveOptions& options) {
   return linear;
 }
 
+}  // namespace springblend::internal
+
+namespace springblend {
+
+void ValidateOptions(const Rig& rig, const SolveOptions& options) {
+  options.Validate();
+  internal::LinearTargets(rig, options);
+}
+
+}  // namespace springblend
+
+namespace springblend::internal {
+
 bool IsSuperposedMix(const SolveOptions& options, const std::vector<char>& linear, const std::vector<double>& weights) {
   if (options.mix != MixModel::kSuperposed) return false;
   int moved = 0;

@@ -83,7 +83,7 @@ class Solver::Impl {
         options_(std::move(options)),
         springs_(internal::TopologyOf(*rig_)),
         linear_(rig_->internals().pattern->matrix, *rig_->internals().cholesky, rig_->options().linear_solver) {
-    options_.Validate();
+    ValidateOptions(*rig_, options_);
     minimizer_ = internal::Minimizer::Create(ToMinimizerOptions(options_));
     springs_.set_length_scale(rig_->summary().mean_rest_length);
     held_.assign(3 * static_cast<size_t>(rig_->num_vertices()), 0);
@@ -109,7 +109,7 @@ class Solver::Impl {
     colliders_ = std::move(colliders);
   }
   void SetOptions(const SolveOptions& options) {
-    options.Validate();
+    ValidateOptions(*rig_, options);
     options_ = options;
     const internal::MinimizerOptions minimizer = ToMinimizerOptions(options_);
     if (minimizer.type == minimizer_->type()) {

@@ -124,6 +124,26 @@ class ClientTest(unittest.TestCase):
         self.assertTrue(all(s.certify_ms > 0 for s in certified.summaries))
         np.testing.assert_array_equal(certified.positions, plain.positions)
 
+    def test_mix_models_and_linear_targets_reach_the_server(self):
+        superposed = self.client.solve(self.character.id, WEIGHTS[1])
+        paper = self.client.solve(self.character.id, WEIGHTS[1], mix="rest-lengths")
+        self.assertTrue(superposed.summaries[0].converged and paper.summaries[0].converged)
+        # A two-target mix: the superposed prediction and the paper's blend of rest lengths are two answers.
+        self.assertGreater(np.abs(superposed.positions - paper.positions).max(), 1e-4 * self.diagonal)
+        # Every target a linear delta: the frame is its linear blend.
+        names = list(self.targets)
+        linear = self.client.solve(self.character.id, WEIGHTS[1], linear_targets=names)
+        blend = self.client.solve(self.character.id, WEIGHTS[1], linear=True)
+        np.testing.assert_allclose(linear.positions, blend.positions, atol=1e-5 * self.diagonal)
+        # None named: the default's answer (the cylinder has no default corrective).
+        none = self.client.solve(self.character.id, WEIGHTS[1], linear_targets=[])
+        np.testing.assert_array_equal(none.positions, superposed.positions)
+        for bad, named in (({"mix": "summed"}, "summed"), ({"linear_targets": ["no-such-target"]}, "no-such-target")):
+            with self.assertRaises(springblend.SpringblendError) as caught:
+                self.client.solve(self.character.id, WEIGHTS[1], **bad)
+            self.assertEqual(caught.exception.code, grpc.StatusCode.INVALID_ARGUMENT)
+            self.assertIn(named, caught.exception.message)
+
     def test_linear_option_is_the_linear_blend(self):
         solution = self.client.solve(self.character.id, [0.5, 0.25], linear=True)
         targets = list(self.targets.values())

@@ -120,12 +120,15 @@ TEST(MixTest, ACapturedTakeStaysWithItsExpressionsMovesWithItAndIsCertified) {
             SummedCorrections(*rig, frames[widest], internal::LinearTargets(*rig, options)) + 1e-3 * diagonal);
 }
 
-TEST(MixTest, OnePhysicalTargetIsThePapersFrameAndACorrectiveAloneIsItsLinearBlend) {
+// One rig build for the rest (each test builds the face again in its own process).
+TEST(MixTest, OneTargetIsThePapersFrameACorrectiveAloneItsBlendMixesAreStatelessAndBadNamesRefused) {
   const auto rig = FaceRig();
+  const double diagonal = rig->summary().bounding_box_diagonal;
   SolveOptions superposed, paper, linear;
   paper.mix = MixModel::kRestLengths;
   linear.linear = true;
   Solver a(rig, superposed), b(rig, paper), l(rig, linear);
+  // One physical target: the paper's frame in both models, to the bit.
   for (int t : {0, 2, 4}) {  // jawOpen, mouthFunnel, mouthSmile_L
     for (double w : {0.3, 0.8}) {
       std::vector<double> weights(rig->num_targets(), 0.0);
@@ -136,14 +139,13 @@ TEST(MixTest, OnePhysicalTargetIsThePapersFrameAndACorrectiveAloneIsItsLinearBle
       EXPECT_EQ(MaxDistance(x, y), 0.0) << rig->target_names()[t] << " at " << w;
     }
   }
+  // The default corrective alone is its linear blend; named physical (an empty list) it is the paper's frame again.
   std::vector<double> weights(rig->num_targets(), 0.0);
   weights[1] = 0.4;  // mouthClose
   Points x, y;
-  const SolveSummary s = a.Solve(Frame{weights}, &x);
-  EXPECT_TRUE(s.converged());
+  EXPECT_TRUE(a.Solve(Frame{weights}, &x).converged());
   l.Solve(Frame{weights}, &y);
-  EXPECT_LE(MaxDistance(x, y), 1e-9 * rig->summary().bounding_box_diagonal);
-  // Named as physical (an empty list), it is the paper's frame again: not its linear blend.
+  EXPECT_LE(MaxDistance(x, y), 1e-9 * diagonal);
   SolveOptions none;
   none.linear_targets = std::vector<std::string>{};
   Solver c(rig, none);
@@ -151,33 +153,25 @@ TEST(MixTest, OnePhysicalTargetIsThePapersFrameAndACorrectiveAloneIsItsLinearBle
   ASSERT_TRUE(c.Solve(Frame{weights}, &z).converged());
   ASSERT_TRUE(b.Solve(Frame{weights}, &p).converged());
   EXPECT_EQ(MaxDistance(z, p), 0.0);
-  EXPECT_GT(MaxDistance(z, y), 1e-4 * rig->summary().bounding_box_diagonal);
-}
-
-TEST(MixTest, AMixIsTheSameAloneAndAfterOtherFrames) {
-  const auto rig = FaceRig();
+  EXPECT_GT(MaxDistance(z, y), 1e-4 * diagonal);
+  // A mix is the same alone and after other frames.
   const std::vector<std::vector<double>> frames = TakeFrames(*rig);
   Solver sequence(rig), alone(rig);
-  Points x, y;
-  for (size_t i = 0; i < 4; ++i) sequence.Solve(Frame{frames[i]}, &x);
-  alone.Solve(Frame{frames[3]}, &y);
-  EXPECT_EQ(MaxDistance(x, y), 0.0);
-}
-
-TEST(MixTest, AnUnknownLinearTargetIsRefusedByName) {
-  const auto rig = FaceRig();
-  SolveOptions options;
-  options.linear_targets = std::vector<std::string>{"jawOpen", "mouthCloze"};
-  Solver solver(rig, options);
-  std::vector<double> weights(rig->num_targets(), 0.2);
-  Points x;
+  Points s, t;
+  for (size_t i = 0; i < 4; ++i) sequence.Solve(Frame{frames[i]}, &s);
+  alone.Solve(Frame{frames[3]}, &t);
+  EXPECT_EQ(MaxDistance(s, t), 0.0);
+  // A linear target that is no target of the rig is refused by name, before any frame.
+  SolveOptions unknown;
+  unknown.linear_targets = std::vector<std::string>{"jawOpen", "mouthCloze"};
   try {
-    solver.Solve(Frame{weights}, &x);
+    Solver refused(rig, unknown);
     FAIL() << "an unknown linear target was accepted";
   } catch (const Error& e) {
     EXPECT_EQ(e.code(), ErrorCode::kInvalidInput);
     EXPECT_NE(std::string(e.what()).find("'mouthCloze'"), std::string::npos) << e.what();
   }
+  EXPECT_THROW(a.set_options(unknown), Error);
 }
 
 }  // namespace

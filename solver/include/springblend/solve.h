@@ -243,6 +243,9 @@ inline constexpr double kMaxShapeWeight = 1e6;
 // Checks a weight vector against the rig: right length, finite entries within the bounds above, and the shape
 // weights they give (Rig::ShapeWeights) within theirs. Throws Error naming the entry or the shape.
 void ValidateWeights(const Rig& rig, const std::vector<double>& weights);
+// Checks options against the rig they will solve (SolveOptions::Validate, and linear_targets naming its targets):
+// throws Error(kInvalidInput) naming the field or the name at fault. Solver's constructor and set_options call it.
+void ValidateOptions(const Rig& rig, const SolveOptions& options);
 // Checks a whole frame (weights, pins, one transform per collider or none) before anything is solved.
 void ValidateFrame(const Rig& rig, const Frame& frame, size_t colliders);
 
