@@ -187,11 +187,12 @@ int Run(const Settings& settings) {
         const Points start = solver.Start(frame.weights).topRows(rig->num_surface_vertices());
         fmt::print("  {} frame {}: start from linear {:.3f} %, answer from start {:.3f} %, from linear {:.3f} %, "
                    "initial residual {:.2e}, {} Newton, {:.0f} ms (mix {:.0f}, springs {:.0f}, linear solves {:.0f}, "
-                   "factorizations {} in {:.0f}), {}\n",
+                   "factorizations {} in {:.0f}, projected {}, shifted {}, CG {}, halvings {}), {}\n",
                    model, settings.first + settings.stride * static_cast<int>(i),
                    100 * MaxDistance(start, linear[i]) / diagonal, 100 * MaxDistance(solved[i], start) / diagonal,
                    100 * MaxDistance(solved[i], linear[i]) / diagonal, s.initial_residual, s.newton_iterations,
                    s.solve_ms, s.mix_ms, s.spring_ms, s.linear_solve_ms, s.factorizations, s.factorize_ms,
+                   s.projected_factorizations, s.shifted_factorizations, s.cg_iterations, s.line_search_halvings,
                    ToString(s.finish));
       }
       ms.push_back(s.solve_ms - s.certify_ms);

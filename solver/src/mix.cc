@@ -132,34 +132,45 @@ void SuperposedRestLengths(const Rig& rig, const std::vector<double>& weights, c
   for (size_t t = 0; t < weights.size(); ++t) {
     if (weights[t] != 0.0 && factors[t] != 0.0) moved.push_back(static_cast<int>(t));
   }
-  std::vector<Alone> alone(moved.size());
-  tbb::parallel_for(size_t{0}, moved.size(), [&](size_t i) {
-    std::vector<double> single(weights.size(), 0.0);
-    single[moved[i]] = weights[moved[i]];
-    const std::vector<double> shape_weights = rig.ShapeWeights(single);
-    for (int s = 0; s < rig.num_shapes(); ++s) {
-      if (shape_weights[s] != 0.0 && rig.target_changes_lengths(s)) alone[i].shapes.emplace_back(s, shape_weights[s]);
-    }
-    Prediction(rig, single, linear, use_paths, &alone[i].x);
-    alone[i].factor = factors[moved[i]];
-  });
+  // The targets' strains summed per spring in target order, a few targets' predictions at a time (their memory
+  // bounded: each is a copy of the vertices), the same sums whatever the grouping.
+  constexpr size_t kGroup = 4;
+  std::vector<double> weighted(m, 0.0), magnitude(m, 0.0);
+  auto length = [&](const Eigen::VectorXd& x, int q) { return (x.segment<3>(3 * a[q]) - x.segment<3>(3 * b[q])).norm(); };
+  for (size_t first = 0; first < moved.size(); first += kGroup) {
+    std::vector<Alone> alone(std::min(kGroup, moved.size() - first));
+    tbb::parallel_for(size_t{0}, alone.size(), [&](size_t i) {
+      const int t = moved[first + i];
+      std::vector<double> single(weights.size(), 0.0);
+      single[t] = weights[t];
+      const std::vector<double> shape_weights = rig.ShapeWeights(single);
+      for (int s = 0; s < rig.num_shapes(); ++s) {
+        if (shape_weights[s] != 0.0 && rig.target_changes_lengths(s)) alone[i].shapes.emplace_back(s, shape_weights[s]);
+      }
+      Prediction(rig, single, linear, use_paths, &alone[i].x);
+      alone[i].factor = factors[t];
+    });
+    tbb::parallel_for(tbb::blocked_range<int>(0, m, 4096), [&](const tbb::blocked_range<int>& range) {
+      for (int q = range.begin(); q != range.end(); ++q) {
+        // Each target's residual strain here: its own blended rest length (as BlendRestLengths gives it, clamped)
+        // less its length at its own prediction.
+        for (const Alone& t : alone) {
+          double own = r0[q];
+          for (const auto& [s, w] : t.shapes) own += w * rig.rest_length_delta(s)[q];
+          const double strain = t.factor * (std::max(own, floor) - length(t.x, q));
+          weighted[q] += strain * std::abs(strain);
+          magnitude[q] += std::abs(strain);
+        }
+      }
+    });
+  }
+  // Averaged with their magnitudes as weights, sum e|e| / sum |e|: one target's strain exactly where it alone
+  // strains the spring, never more than the largest where several do.
   rest_lengths->resize(m);
   double* out = rest_lengths->data();
-  auto length = [&](const Eigen::VectorXd& x, int q) { return (x.segment<3>(3 * a[q]) - x.segment<3>(3 * b[q])).norm(); };
   tbb::parallel_for(tbb::blocked_range<int>(0, m, 4096), [&](const tbb::blocked_range<int>& range) {
     for (int q = range.begin(); q != range.end(); ++q) {
-      // Each target's residual strain here: its own blended rest length (as BlendRestLengths gives it, clamped)
-      // less its length at its own prediction. Averaged with their magnitudes as weights, sum s|s| / sum |s|: one
-      // target's strain exactly where it alone strains the spring, never more than the largest where several do.
-      double weighted = 0.0, magnitude = 0.0;
-      for (const Alone& t : alone) {
-        double own = r0[q];
-        for (const auto& [s, w] : t.shapes) own += w * rig.rest_length_delta(s)[q];
-        const double strain = t.factor * (std::max(own, floor) - length(t.x, q));
-        weighted += strain * std::abs(strain);
-        magnitude += std::abs(strain);
-      }
-      const double strain = magnitude > 0.0 ? weighted / magnitude : 0.0;
+      const double strain = magnitude[q] > 0.0 ? weighted[q] / magnitude[q] : 0.0;
       out[q] = std::max(length(y, q) + strain, floor);
     }
   });
