@@ -74,6 +74,8 @@ struct Settings {
   RigOptions rig;
   std::string method = "newton";
   double local_finish_share = SolveOptions{}.local_finish_share;
+  bool negative_curvature = SolveOptions{}.follow_negative_curvature;
+  bool projected = false;
 };
 
 int Run(const Settings& settings) {
@@ -172,6 +174,8 @@ int Run(const Settings& settings) {
     options.mix = MixModelFromString(model);
     options.method = SolveMethodFromString(settings.method);
     options.local_finish_share = settings.local_finish_share;
+    options.follow_negative_curvature = settings.negative_curvature;
+    if (settings.projected) options.hessian = HessianMode::kProjected;
     options.certify_minimum = settings.certify;
     Solver solver(rig, options);
     std::vector<Points> solved(frames.size());
@@ -257,6 +261,9 @@ int main(int argc, char** argv) {
                "hold the open surface's outer rim on the linear blend (RigOptions::hold_outer_rim)");
   app.add_option("--local-finish-share", settings.local_finish_share,
                  "largest share of the vertices a local finish may solve (SolveOptions::local_finish_share)");
+  app.add_flag("!--no-negative-curvature", settings.negative_curvature,
+               "without SolveOptions::follow_negative_curvature");
+  app.add_flag("--projected", settings.projected, "the projected Hessian always (HessianMode::kProjected)");
   app.add_option("--method", settings.method, "newton, newton-laplacian or lbfgs (SolveOptions::method)");
   app.add_flag("--per-target", settings.per_target, "each target of the first frame alone: its start and answer");
   app.add_flag("--verbose", settings.verbose, "a line per frame: its start's and answer's distances, residual, iterations");
