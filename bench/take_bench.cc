@@ -51,14 +51,6 @@ double Percentile(std::vector<double> v, double p) {
 
 double MaxDistance(const Points& a, const Points& b) { return std::sqrt((a - b).rowwise().squaredNorm().maxCoeff()); }
 
-void WriteObj(const fs::path& file, const Points& x, const TriangleMesh& mesh) {
-  std::ofstream out(file);
-  for (Eigen::Index v = 0; v < x.rows(); ++v) out << fmt::format("v {} {} {}\n", x(v, 0), x(v, 1), x(v, 2));
-  for (Eigen::Index f = 0; f < mesh.faces.rows(); ++f) {
-    out << fmt::format("f {} {} {}\n", mesh.faces(f, 0) + 1, mesh.faces(f, 1) + 1, mesh.faces(f, 2) + 1);
-  }
-}
-
 struct Settings {
   fs::path face;
   fs::path take;
@@ -153,8 +145,8 @@ int Run(const Settings& settings) {
       const SolveSummary s = solver.Solve(frame, &x);
       linear_solver.Solve(frame, &lin);
       const Points start = solver.Start(frame.weights).topRows(rig->num_surface_vertices());
-      WriteObj(settings.out / fmt::format("alone-{}.obj", rig->target_names()[t]), x, rest);
-      WriteObj(settings.out / fmt::format("alone-{}-linear.obj", rig->target_names()[t]), lin, rest);
+      WriteObj((settings.out / fmt::format("alone-{}.obj", rig->target_names()[t])).string(), x, rest.faces);
+      WriteObj((settings.out / fmt::format("alone-{}-linear.obj", rig->target_names()[t])).string(), lin, rest.faces);
       fmt::print("  {:>18} at {:.3f}: start from linear {:.3f} %, answer from start {:.4f} %, initial residual {:.1e}, "
                  "{} Newton, {:.0f} ms, {}\n",
                  rig->target_names()[t], frame.weights[t], 100 * MaxDistance(start, lin) / diagonal,
@@ -223,15 +215,14 @@ int Run(const Settings& settings) {
                      {"pops", pops}, {"worst_step_ratio", worst_ratio},
                      {"distance_median", Percentile(distance, 50)}, {"distance_p95", Percentile(distance, 95)},
                      {"distance_max", Percentile(distance, 100)}, {"worst_frame", settings.first + settings.stride * static_cast<int>(worst)}};
-    WriteObj(settings.out / fmt::format("take-{}-worst.obj", model), solved[worst], rest);
-    WriteObj(settings.out / fmt::format("take-{}-worst-linear.obj", model), linear[worst], rest);
+    WriteObj((settings.out / fmt::format("take-{}-worst.obj", model)).string(), solved[worst], rest.faces);
+    WriteObj((settings.out / fmt::format("take-{}-worst-linear.obj", model)).string(), linear[worst], rest.faces);
     // Every model's answer at the first model's worst frame, for a picture of one frame (docs/render_take_figure.py).
     if (first_worst < 0) first_worst = static_cast<int>(worst);
-    WriteObj(settings.out / fmt::format("take-{}-at-{}.obj", model, settings.first + settings.stride * first_worst),
-             solved[first_worst], rest);
+    const int at = settings.first + settings.stride * first_worst;
+    WriteObj((settings.out / fmt::format("take-{}-at-{}.obj", model, at)).string(), solved[first_worst], rest.faces);
     if (&model == &settings.models.front()) {
-      WriteObj(settings.out / fmt::format("take-linear-at-{}.obj", settings.first + settings.stride * first_worst),
-               linear[first_worst], rest);
+      WriteObj((settings.out / fmt::format("take-linear-at-{}.obj", at)).string(), linear[first_worst], rest.faces);
     }
   }
   std::ofstream(settings.out / "take.json") << report.dump(2) << "\n";
