@@ -25,6 +25,8 @@
 #include <string>
 #include <vector>
 
+#include <sys/resource.h>
+
 #include "live_link_take.h"
 #include "springblend/error.h"
 #include "springblend/mesh.h"
@@ -68,6 +70,7 @@ struct Settings {
   double local_finish_share = SolveOptions{}.local_finish_share;
   bool negative_curvature = SolveOptions{}.follow_negative_curvature;
   bool projected = false;
+  std::vector<std::string> targets;  // the expressions uploaded (all when empty)
 };
 
 int Run(const Settings& settings) {
@@ -86,6 +89,10 @@ int Run(const Settings& settings) {
   }
   std::sort(files.begin(), files.end());
   for (const auto& f : files) {
+    if (!settings.targets.empty() &&
+        std::find(settings.targets.begin(), settings.targets.end(), f.stem().string()) == settings.targets.end()) {
+      continue;
+    }
     TargetSpec t;
     t.mesh = LoadMesh(f.string());
     t.name = f.stem().string();
@@ -110,6 +117,21 @@ int Run(const Settings& settings) {
              rig->num_targets(), summary.surface_vertices, summary.vertices, summary.springs, summary.interior,
              build_ms / 1000.0, summary.paths_loaded ? " with its paths loaded" : "", summary.uncertified_path_intervals,
              summary.static_vertices, summary.rim_vertices);
+  if (!summary.paths_loaded) {
+    rusage usage{};
+    getrusage(RUSAGE_SELF, &usage);
+    const double cpu = static_cast<double>(usage.ru_utime.tv_sec + usage.ru_stime.tv_sec) +
+                       1e-6 * static_cast<double>(usage.ru_utime.tv_usec + usage.ru_stime.tv_usec);
+    int samples = 0, solves = 0, checks = 0;
+    for (const auto& p : summary.paths) {
+      samples += p.samples, solves += p.solves, checks += p.checks;
+      if (settings.verbose) {
+        fmt::print("  path {:>18}: {} samples, {} solves ({} checks, {} local), {} uncertified, {:.1f} s\n", p.target,
+                   p.samples, p.solves, p.checks, p.local_checks, p.uncertified, p.ms / 1000.0);
+      }
+    }
+    fmt::print("paths: {} samples, {} solves ({} checks), process CPU {:.1f} s\n", samples, solves, checks, cpu);
+  }
   const std::vector<std::vector<double>> all = take::Weights(take, rig->target_names());
   std::vector<std::vector<double>> frames;
   for (int i = settings.first; i < static_cast<int>(all.size()) && static_cast<int>(frames.size()) < settings.count;
@@ -182,11 +204,12 @@ int Run(const Settings& settings) {
       if (settings.verbose) {
         const Points start = solver.Start(frame.weights).topRows(rig->num_surface_vertices());
         fmt::print("  {} frame {}: start from linear {:.3f} %, answer from start {:.3f} %, from linear {:.3f} %, "
-                   "initial residual {:.2e}, {} Newton, {:.0f} ms (mix {:.0f}, springs {:.0f}, linear solves {:.0f}, "
+                   "strain share {:.3f}, initial residual {:.2e}, {} Newton, {:.0f} ms (mix {:.0f}, springs {:.0f}, linear solves {:.0f}, "
                    "factorizations {} in {:.0f}, projected {}, shifted {}, CG {}, halvings {}), {}\n",
                    model, settings.first + settings.stride * static_cast<int>(i),
                    100 * MaxDistance(start, linear[i]) / diagonal, 100 * MaxDistance(solved[i], start) / diagonal,
-                   100 * MaxDistance(solved[i], linear[i]) / diagonal, s.initial_residual, s.newton_iterations,
+                   100 * MaxDistance(solved[i], linear[i]) / diagonal, s.mix_strain_share, s.initial_residual,
+                   s.newton_iterations,
                    s.solve_ms, s.mix_ms, s.spring_ms, s.linear_solve_ms, s.factorizations, s.factorize_ms,
                    s.projected_factorizations, s.shifted_factorizations, s.cg_iterations, s.line_search_halvings,
                    ToString(s.finish));
@@ -255,6 +278,12 @@ int main(int argc, char** argv) {
   app.add_flag("!--no-negative-curvature", settings.negative_curvature,
                "without SolveOptions::follow_negative_curvature");
   app.add_flag("--projected", settings.projected, "the projected Hessian always (HessianMode::kProjected)");
+  app.add_option("--targets", settings.targets, "only these expressions (file stems), for build-time experiments")
+      ->delimiter(',');
+  app.add_option("--path-intervals", settings.rig.path_intervals, "RigOptions::path_intervals");
+  app.add_option("--path-extension", settings.rig.path_extension, "RigOptions::path_extension");
+  app.add_option("--path-tolerance", settings.rig.path_tolerance, "RigOptions::path_tolerance");
+  app.add_option("--path-max-samples", settings.rig.path_max_samples, "RigOptions::path_max_samples");
   app.add_option("--method", settings.method, "newton, newton-laplacian or lbfgs (SolveOptions::method)");
   app.add_flag("--per-target", settings.per_target, "each target of the first frame alone: its start and answer");
   app.add_flag("--verbose", settings.verbose, "a line per frame: its start's and answer's distances, residual, iterations");

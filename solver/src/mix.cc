@@ -96,6 +96,69 @@ std::vector<double> PhysicalFactors(const Rig& rig, const std::vector<double>& w
   return factor;
 }
 
+// The physical targets' corrections at their weights (each scaled by its factor; the anchor's frame), averaged
+// per vertex with their magnitudes as weights, sum c|c| / sum |c|: a target's own correction where it alone
+// corrects a vertex, never longer than the longest where several do. One target: its correction exactly.
+// #vertices by 3. (Summed, as the linear blend sums deltas, the corrections of a captured face's 20-40
+// expressions point the same way at the lips, each restoring its own target's arc, and added up to 2.3 % of the
+// diagonal from the linear blend where every expression's own was under 0.7 %. Summed but capped per vertex at
+// the longest, 1.26 % on the same frames, and the lips pressed closer than the springs' floor, so that frames the
+// average leaves at rest took 7-10 Newton iterations.)
+Eigen::MatrixXd AveragedCorrection(const Rig& rig, const std::vector<double>& weights,
+                                   const std::vector<double>& factors, int n) {
+  const std::vector<TargetPath>& paths = rig.internals().paths;
+  Eigen::MatrixXd weighted = Eigen::MatrixXd::Zero(n, 3), c;
+  Eigen::VectorXd magnitude = Eigen::VectorXd::Zero(n);
+  int count = 0;
+  for (size_t t = 0; t < paths.size() && t < weights.size(); ++t) {
+    if (paths[t].empty() || weights[t] == 0.0 || factors[t] == 0.0) continue;
+    EvaluatePath(paths[t], weights[t], &c);
+    c *= factors[t];
+    if (count++ == 0) {
+      weighted.swap(c);  // a sole target's correction stays exactly itself
+      continue;
+    }
+    if (count == 2) magnitude = weighted.rowwise().norm(), weighted.array().colwise() *= magnitude.array();
+    const Eigen::VectorXd norm = c.rowwise().norm();
+    weighted.array() += c.array().colwise() * norm.array();
+    magnitude += norm;
+  }
+  if (count < 2) return weighted;
+  for (int v = 0; v < n; ++v) {
+    if (magnitude[v] > 0.0) weighted.row(v) /= magnitude[v];
+  }
+  return weighted;
+}
+
+// How much of the targets' residual strains a mix carries: 2 S_max / sum_t S_t - 1 clamped to [0, 1], S_t the
+// size of target t's length changes at its weight (sum over springs of |w_t (r^t - r^0)|, times its factor). 1 where
+// one target alone changes lengths (the paper's frame: its strains exactly), falling as others join, 0 once the
+// largest changes no more than all the others together.
+double PrestressShare(const Rig& rig, const std::vector<double>& weights, const std::vector<double>& factors,
+                      const std::vector<int>& moved) {
+  if (moved.empty()) return 0.0;
+  const int m = rig.num_springs();
+  std::vector<double> size(moved.size(), 0.0);
+  tbb::parallel_for(size_t{0}, moved.size(), [&](size_t i) {
+    std::vector<double> single(weights.size(), 0.0);
+    single[moved[i]] = weights[moved[i]];
+    const std::vector<double> shape_weights = rig.ShapeWeights(single);
+    std::vector<double> change(m, 0.0);
+    for (int s = 0; s < rig.num_shapes(); ++s) {
+      if (shape_weights[s] == 0.0 || !rig.target_changes_lengths(s)) continue;
+      const std::vector<double>& delta = rig.rest_length_delta(s);
+      for (int q = 0; q < m; ++q) change[q] += shape_weights[s] * delta[q];
+    }
+    double sum = 0.0;
+    for (double c : change) sum += std::abs(c);
+    size[i] = std::abs(factors[moved[i]]) * sum;
+  });
+  double total = 0.0, largest = 0.0;
+  for (double s : size) total += s, largest = std::max(largest, s);
+  if (!(total > 0.0)) return moved.size() == 1 ? 1.0 : 0.0;
+  return std::clamp(2.0 * largest / total - 1.0, 0.0, 1.0);
+}
+
 }  // namespace
 
 void Prediction(const Rig& rig, const std::vector<double>& weights, const std::vector<char>& linear, bool use_paths,
@@ -107,14 +170,16 @@ void Prediction(const Rig& rig, const std::vector<double>& weights, const std::v
   for (int v = 0; v < n; ++v) y->segment<3>(3 * v) = blend.row(v).transpose();
   const FrameConditions conditions = ConditionsOf(rig, shape_weights, blend, {});
   if (use_paths) {
-    const std::vector<double> factors = PhysicalFactors(rig, weights, linear);
-    AddPathCorrections(rig.internals().paths, weights, conditions.motion, y, &factors);
+    const Eigen::MatrixXd correction = AveragedCorrection(rig, weights, PhysicalFactors(rig, weights, linear), n);
+    const Eigen::Matrix3d rotation =
+        conditions.motion ? conditions.motion->rotation.toRotationMatrix() : Eigen::Matrix3d::Identity();
+    for (int v = 0; v < n; ++v) y->segment<3>(3 * v) += rotation * correction.row(v).transpose();
   }
   for (const auto& [v, p] : conditions.held) y->segment<3>(3 * v) = p;
 }
 
-void SuperposedRestLengths(const Rig& rig, const std::vector<double>& weights, const std::vector<char>& linear,
-                           bool use_paths, const Eigen::VectorXd& y, std::vector<double>* rest_lengths) {
+double SuperposedRestLengths(const Rig& rig, const std::vector<double>& weights, const std::vector<char>& linear,
+                             bool use_paths, const Eigen::VectorXd& y, std::vector<double>* rest_lengths) {
   const int m = rig.num_springs();
   const std::vector<int>& a = rig.spring_a();
   const std::vector<int>& b = rig.spring_b();
@@ -127,16 +192,26 @@ void SuperposedRestLengths(const Rig& rig, const std::vector<double>& weights, c
     Eigen::VectorXd x;
     double factor = 1.0;
   };
+  auto length = [&](const Eigen::VectorXd& x, int q) { return (x.segment<3>(3 * a[q]) - x.segment<3>(3 * b[q])).norm(); };
   const std::vector<double> factors = PhysicalFactors(rig, weights, linear);
   std::vector<int> moved;
   for (size_t t = 0; t < weights.size(); ++t) {
     if (weights[t] != 0.0 && factors[t] != 0.0) moved.push_back(static_cast<int>(t));
   }
+  const double share = PrestressShare(rig, weights, factors, moved);
+  rest_lengths->resize(m);
+  if (share == 0.0) {
+    // No target dominates: the springs rest at the prediction, which is the answer (energy zero).
+    double* out = rest_lengths->data();
+    tbb::parallel_for(tbb::blocked_range<int>(0, m, 4096), [&](const tbb::blocked_range<int>& range) {
+      for (int q = range.begin(); q != range.end(); ++q) out[q] = std::max(length(y, q), floor);
+    });
+    return share;
+  }
   // The targets' strains summed per spring in target order, a few targets' predictions at a time (their memory
   // bounded: each is a copy of the vertices), the same sums whatever the grouping.
   constexpr size_t kGroup = 4;
   std::vector<double> weighted(m, 0.0), magnitude(m, 0.0);
-  auto length = [&](const Eigen::VectorXd& x, int q) { return (x.segment<3>(3 * a[q]) - x.segment<3>(3 * b[q])).norm(); };
   for (size_t first = 0; first < moved.size(); first += kGroup) {
     std::vector<Alone> alone(std::min(kGroup, moved.size() - first));
     tbb::parallel_for(size_t{0}, alone.size(), [&](size_t i) {
@@ -157,7 +232,7 @@ void SuperposedRestLengths(const Rig& rig, const std::vector<double>& weights, c
         for (const Alone& t : alone) {
           double own = r0[q];
           for (const auto& [s, w] : t.shapes) own += w * rig.rest_length_delta(s)[q];
-          const double strain = t.factor * (std::max(own, floor) - length(t.x, q));
+          const double strain = share * t.factor * (std::max(own, floor) - length(t.x, q));
           weighted[q] += strain * std::abs(strain);
           magnitude[q] += std::abs(strain);
         }
@@ -166,7 +241,6 @@ void SuperposedRestLengths(const Rig& rig, const std::vector<double>& weights, c
   }
   // Averaged with their magnitudes as weights, sum e|e| / sum |e|: one target's strain exactly where it alone
   // strains the spring, never more than the largest where several do.
-  rest_lengths->resize(m);
   double* out = rest_lengths->data();
   tbb::parallel_for(tbb::blocked_range<int>(0, m, 4096), [&](const tbb::blocked_range<int>& range) {
     for (int q = range.begin(); q != range.end(); ++q) {
@@ -174,6 +248,7 @@ void SuperposedRestLengths(const Rig& rig, const std::vector<double>& weights, c
       out[q] = std::max(length(y, q) + strain, floor);
     }
   });
+  return share;
 }
 
 }  // namespace springblend::internal

@@ -7,23 +7,28 @@
 //    lengths far longer than any expression's (the lip seam's 20 times the linear blend's), and the lips buckle
 //    into a shape no expression has, a different way from one frame to the next.
 //
-//  - kSuperposed (the default): the frame's *prediction* is the linear blend plus each target's own physical
-//    correction at its weight (the correction its path solved, the target alone; RigOptions::target_paths),
-//        y(w) = L(w) + sum_t c_t(w_t),
-//    and the rest lengths are y's own edge lengths plus each target's own residual strain at its weight (its
-//    blended rest length less its path's length there: the tension or compression its equilibrium holds),
-//        r̄_q(w) = |y_a - y_b| + (sum_t e_tq |e_tq|) / (sum_t |e_tq|),   e_tq = r̄_q^t(w_t) - |x̃^t_a(w_t) - x̃^t_b(w_t)|,
-//    x̃^t(w_t) = L(w_t e_t) + c_t(w_t): each target's residual strain e_tq, averaged per spring with the strains'
-//    magnitudes as weights. Deltas add as vectors (as the artist sculpted them, and as the linear blend adds
-//    them), each target keeps its own physical correction (a jaw's rotation), and neither length changes nor
-//    strains add up: where one target alone strains a spring it keeps that target's strain exactly, where several
-//    do the average is at most the largest. (Summed, the shell's short springs at the lips, strained 10 % at each
-//    target's own equilibrium, were strained 20-30 % at y and the mix moved 2-4 % of the diagonal away from it
-//    over 40-90 Newton iterations.) For one target, y = x̃^t and r̄ is the paper's exactly; as a second target's
-//    weight goes to 0 its strains and correction vanish and the mix goes to that frame continuously. For a mix
-//    the springs are at rest at y up to the averaged strains: the equilibrium lies next to y, found in a few
-//    Newton steps, and it moves with the weights as y does. Colliders and pins then deform that system
-//    physically, as in the paper.
+//  - kSuperposed (the default): the frame's *prediction* is the linear blend plus the targets' own physical
+//    corrections at their weights (each the correction its path solved, the target alone; RigOptions::target_paths),
+//    averaged per vertex with their magnitudes as weights,
+//        y(w) = L(w) + (sum_t c_t(w_t) |c_t(w_t)|) / (sum_t |c_t(w_t)|),
+//    and the rest lengths are y's own edge lengths plus a share sigma of the targets' residual strains at their
+//    weights (each target's blended rest length less its path's length there: the tension or compression its
+//    equilibrium holds), averaged per spring the same way,
+//        r̄_q(w) = |y_a - y_b| + sigma (sum_t e_tq |e_tq|) / (sum_t |e_tq|),   e_tq = r̄_q^t(w_t) - |x̃^t_a(w_t) - x̃^t_b(w_t)|,
+//    x̃^t(w_t) = L(w_t e_t) + c_t(w_t), and sigma = clamp(2 S_max / sum_t S_t - 1, 0, 1), S_t the size of target t's
+//    length changes at its weight (sum_q |w_t (r_q^t - r_q^0)|): 1 while one target changes more lengths than all
+//    the others together, 0 once it no longer does.
+//    Deltas add as vectors (as the artist sculpted them, and as the linear blend adds them); each target keeps its
+//    own physical correction (a jaw's rotation) where it alone corrects a vertex, and where several do the
+//    correction is never longer than the longest. Neither length changes, nor corrections, nor strains add up.
+//    (Summed, the corrections of a captured face's 20-40 expressions all point the same way at the lips, each
+//    restoring its own target's arc: 2.3 % of the diagonal from the linear blend where every expression's own was
+//    under 0.7 %. Summed strains put the lips' short springs at 20-30 % and the mix 2-4 % away.)
+//    Where no target dominates (sigma 0: every frame of a captured take) the springs rest at y, so y is the
+//    answer: its energy is zero, a global minimum, reached without a Newton step and moving with the weights as y
+//    does. Colliders and pins then deform that system physically, as in the paper. As one target comes to
+//    dominate, its strains come back in: for one target y = x̃^t and r̄ is the paper's exactly, and as a second
+//    target's weight goes to 0 the mix goes to that frame continuously.
 //
 // A sculpted combination (a rig file's corrective driven by the product of its drivers' weights) takes over from
 // its drivers' physical corrections and strains as its weight grows (each driver's scaled by 1 - that weight): at
@@ -64,7 +69,8 @@ void Prediction(const Rig& rig, const std::vector<double>& weights, const std::v
 // lengths plus the physical targets' residual strains at their weights averaged per spring with their magnitudes
 // as weights (sum s|s| / sum |s|: a target's own strain where it alone strains the spring, at most the largest
 // where several do), clamped from below as BlendRestLengths clamps them.
-void SuperposedRestLengths(const Rig& rig, const std::vector<double>& weights, const std::vector<char>& linear,
-                           bool use_paths, const Eigen::VectorXd& y, std::vector<double>* rest_lengths);
+// Returns the share of the strains carried (PrestressShare).
+double SuperposedRestLengths(const Rig& rig, const std::vector<double>& weights, const std::vector<char>& linear,
+                             bool use_paths, const Eigen::VectorXd& y, std::vector<double>* rest_lengths);
 
 }  // namespace springblend::internal

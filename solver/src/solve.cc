@@ -198,8 +198,8 @@ SolveSummary Solver::Impl::Solve(const Frame& frame, Points* positions, const st
   if (superposed) {
     const auto mix_start = std::chrono::steady_clock::now();
     internal::Prediction(rig, frame.weights, linear_targets, options_.use_target_paths, &prediction);
-    internal::SuperposedRestLengths(rig, frame.weights, linear_targets, options_.use_target_paths, prediction,
-                                    &rest_lengths);
+    summary.mix_strain_share = internal::SuperposedRestLengths(rig, frame.weights, linear_targets,
+                                                               options_.use_target_paths, prediction, &rest_lengths);
     summary.mix_ms = Elapsed(mix_start);
   } else {
     internal::BlendRestLengths(rig, shape_weights, &rest_lengths);

@@ -227,6 +227,9 @@ struct SolveSummary {
   double line_search_ms = 0.0;
   double factorize_ms = 0.0;
   double mix_ms = 0.0;  // the superposed mix's prediction and rest lengths (MixModel::kSuperposed; part of solve_ms)
+  // The share of its targets' residual strains a superposed mix carried (1: one target dominates, as in its own
+  // frame; 0: the springs rest at the prediction, which is the answer unless colliders or pins move it).
+  double mix_strain_share = 0.0;
 
   bool converged() const {
     return termination == Termination::kConverged || termination == Termination::kLinear;
