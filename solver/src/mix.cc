@@ -201,10 +201,12 @@ double SuperposedRestLengths(const Rig& rig, const std::vector<double>& weights,
   const double share = PrestressShare(rig, weights, factors, moved);
   rest_lengths->resize(m);
   if (share == 0.0) {
-    // No target dominates: the springs rest at the prediction, which is the answer (energy zero).
+    // No target dominates: the springs rest at the prediction, which is the answer (energy zero). The floor on
+    // rest lengths (min_rest_length_fraction) keeps a blend of length changes from going to zero or below; a
+    // length of y is one already, and held up to the floor it would push apart lips that y closes.
     double* out = rest_lengths->data();
     tbb::parallel_for(tbb::blocked_range<int>(0, m, 4096), [&](const tbb::blocked_range<int>& range) {
-      for (int q = range.begin(); q != range.end(); ++q) out[q] = std::max(length(y, q), floor);
+      for (int q = range.begin(); q != range.end(); ++q) out[q] = length(y, q);
     });
     return share;
   }
@@ -245,7 +247,8 @@ double SuperposedRestLengths(const Rig& rig, const std::vector<double>& weights,
   tbb::parallel_for(tbb::blocked_range<int>(0, m, 4096), [&](const tbb::blocked_range<int>& range) {
     for (int q = range.begin(); q != range.end(); ++q) {
       const double strain = magnitude[q] > 0.0 ? weighted[q] / magnitude[q] : 0.0;
-      out[q] = std::max(length(y, q) + strain, floor);
+      const double here = length(y, q);
+      out[q] = std::max(here + strain, std::min(here, floor));  // never floored above y's own length
     }
   });
   return share;

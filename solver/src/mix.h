@@ -66,10 +66,10 @@ void Prediction(const Rig& rig, const std::vector<double>& weights, const std::v
                 Eigen::VectorXd* y);
 
 // The superposed model's rest lengths for a frame, from its prediction y (Prediction of the same weights): y's
-// lengths plus the physical targets' residual strains at their weights averaged per spring with their magnitudes
-// as weights (sum s|s| / sum |s|: a target's own strain where it alone strains the spring, at most the largest
-// where several do), clamped from below as BlendRestLengths clamps them.
-// Returns the share of the strains carried (PrestressShare).
+// lengths plus a share of the physical targets' residual strains at their weights averaged per spring with their
+// magnitudes as weights (sum s|s| / sum |s|: a target's own strain where it alone strains the spring, at most the
+// largest where several do), clamped from below as BlendRestLengths clamps them but never above y's own length
+// (y's lengths are the rest lengths where the share is 0). Returns the share (PrestressShare).
 double SuperposedRestLengths(const Rig& rig, const std::vector<double>& weights, const std::vector<char>& linear,
                              bool use_paths, const Eigen::VectorXd& y, std::vector<double>* rest_lengths);
 
