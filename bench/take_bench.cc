@@ -27,7 +27,7 @@
 
 #include <sys/resource.h>
 
-#include "live_link_take.h"
+#include "take.h"
 #include "springblend/error.h"
 #include "springblend/mesh.h"
 #include "springblend/rig.h"
@@ -98,7 +98,7 @@ int Run(const Settings& settings) {
     t.name = f.stem().string();
     specs.push_back(std::move(t));
   }
-  const take::Take take = take::ReadTake(settings.take.string());
+  const cli::Take take = cli::ReadTake(settings.take.string());
   RigBuildControl control;
   std::string cached;
   if (!settings.cache.empty() && fs::is_regular_file(settings.cache)) {
@@ -132,7 +132,9 @@ int Run(const Settings& settings) {
     }
     fmt::print("paths: {} samples, {} solves ({} checks), process CPU {:.1f} s\n", samples, solves, checks, cpu);
   }
-  const std::vector<std::vector<double>> all = take::Weights(take, rig->target_names());
+  // The tracked rows (lost ones skipped), matched to the face's targets by name as the CLI matches them.
+  const std::vector<std::vector<double>> all =
+      cli::MatchTake(take, rig->target_names(), nullptr, cli::LostRows::kSkip).weights;
   std::vector<std::vector<double>> frames;
   for (int i = settings.first; i < static_cast<int>(all.size()) && static_cast<int>(frames.size()) < settings.count;
        i += settings.stride) {
@@ -141,7 +143,7 @@ int Run(const Settings& settings) {
   std::vector<double> active;
   for (const auto& w : frames) active.push_back(static_cast<double>(std::count_if(w.begin(), w.end(), [](double x) { return x > 0.05; })));
   fmt::print("take: {} rows, frames {}..{} step {} ({} frames), expressions above 0.05: median {:.0f}, max {:.0f}\n",
-             take.rows.size(), settings.first, settings.first + settings.stride * (static_cast<int>(frames.size()) - 1),
+             all.size(), settings.first, settings.first + settings.stride * (static_cast<int>(frames.size()) - 1),
              settings.stride, frames.size(), Percentile(active, 50), Percentile(active, 100));
   const double diagonal = summary.bounding_box_diagonal;
   SolveOptions linear_options;

@@ -9,7 +9,8 @@ cd "$(dirname "$0")/.."
 seconds="${FUZZ_SECONDS:-30}"
 targets=("$@")
 if [ ${#targets[@]} -eq 0 ]; then
-  targets=(mesh_loader_fuzzer upload_assembler_fuzzer solve_request_fuzzer frames_file_fuzzer cache_file_fuzzer)
+  targets=(mesh_loader_fuzzer upload_assembler_fuzzer solve_request_fuzzer frames_file_fuzzer take_file_fuzzer
+           cache_file_fuzzer)
 fi
 bash deploy/install-deps.sh fuzz
 cmake --preset fuzz >/dev/null
@@ -18,7 +19,8 @@ cmake --build --preset fuzz -j "${JOBS:-2}" --target "${targets[@]}" make_fuzz_s
 out=build/fuzz
 seeds="$out/seeds"
 rm -rf "$seeds"
-mkdir -p "$seeds"/{mesh_loader_fuzzer,upload_assembler_fuzzer,solve_request_fuzzer,frames_file_fuzzer,cache_file_fuzzer} \
+mkdir -p "$seeds"/{mesh_loader_fuzzer,upload_assembler_fuzzer,solve_request_fuzzer,frames_file_fuzzer,take_file_fuzzer} \
+  "$seeds/cache_file_fuzzer" \
   "$out/findings"
 # Mesh loader: a format byte (0 obj, 1 off, 2 stl; 3 ply with SPRINGBLEND_FUZZ_PLY=1, see mesh_loader_fuzzer.cc)
 # then the file: the first lines of a test mesh, and a tetrahedron in each format. (Small seeds: OpenMesh is slow
@@ -33,6 +35,9 @@ tet_v='0 0 0\n1 0 0\n0 1 0\n0 0 1\n'
 # Frames files: the shapes the README documents.
 printf '{"frames": [{"weights": [0.5, 0.5]}]}' > "$seeds/frames_file_fuzzer/one.json"
 printf '{"colliders": ["sphere:0,0,0,1"], "frames": [{"weights": [1, 0], "colliders": [{"translation": [0, 1, 0], "rotation": [1, 0, 0, 0]}], "pins": [{"vertex": 3, "position": [0, 0, 1]}]}]}' > "$seeds/frames_file_fuzzer/full.json"
+# Takes: the edge take (lost rows, a weight above 1, rotations) and the first rows of the captured excerpt.
+cp tests/data/take/edge_take.csv "$seeds/take_file_fuzzer/edge.csv"
+head -n 4 tests/data/take/alex_rom_4_excerpt.csv > "$seeds/take_file_fuzzer/excerpt.csv"
 # Upload chunks and solve requests: serialized protos written by the seed tool built with the targets.
 "$out/fuzz/make_fuzz_seeds" "$seeds/upload_assembler_fuzzer" "$seeds/solve_request_fuzzer" "$seeds/cache_file_fuzzer" \
   tests/data/cylinder/cylinder.obj

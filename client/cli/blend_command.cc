@@ -53,7 +53,7 @@ struct BlendArgs {
   bool verbose = false;
   std::vector<std::string> colliders;
   std::vector<std::string> pins;
-  std::string frames_file;
+  FramesInput input;  // --frames, --take, --map, --lost
 };
 
 nlohmann::json RigJson(const RigSummary& s) {
@@ -150,11 +150,14 @@ int RunBlend(const BlendArgs& args) {
 
   std::vector<Frame> frames;
   std::vector<std::string> collider_specs = args.colliders;
+  CacheTiming timing = args.timing;
   Scene scene;
-  if (!args.frames_file.empty()) {
-    scene = LoadScene(args.frames_file);
-    scene.ResolveNames(plain->target_names());
+  const bool from_file = args.input.given();
+  if (from_file) {
+    scene = LoadFrames(args.input, plain->target_names(), &timing);
     collider_specs.insert(collider_specs.begin(), scene.colliders.begin(), scene.colliders.end());
+  } else {
+    args.input.CheckTakeOptionsUnused();
   }
   std::vector<Collider> colliders;
   for (const auto& spec : collider_specs) colliders.push_back(ParseCollider(spec));
@@ -163,14 +166,14 @@ int RunBlend(const BlendArgs& args) {
 
   std::vector<double> weights = ResolveWeights(ParseWeightItems(args.weights), plain->target_names(), "--weights");
   if (weights.empty() && plain->num_targets() == 1) weights = {1.0};
-  if (weights.empty() && args.frames_file.empty()) {
+  if (weights.empty() && !from_file) {
     throw Error(ErrorCode::kInvalidInput,
                 fmt::format("--weights is required with {} targets (one weight per target, in order)",
                             plain->num_targets()));
   }
-  if (args.frames_file.empty()) ValidateWeights(*plain, weights);
-  const bool many = args.sweep > 0 || !args.frames_file.empty();
-  if (!args.frames_file.empty()) {
+  if (!from_file) ValidateWeights(*plain, weights);
+  const bool many = args.sweep > 0 || from_file;
+  if (from_file) {
     frames = std::move(scene.frames);
   } else if (args.sweep > 0) {
     frames = SweepFrames(weights, args.sweep);
@@ -183,7 +186,7 @@ int RunBlend(const BlendArgs& args) {
       try {
         ValidateFrame(rig, frames[i], collider_specs.size());
       } catch (const Error& e) {
-        throw Error(e.code(), fmt::format("frames[{}]: {}", i, e.what()));
+        throw Error(e.code(), fmt::format("{}: {}", scene.FrameName(i), e.what()));
       }
     }
   };
@@ -202,7 +205,7 @@ int RunBlend(const BlendArgs& args) {
   validate(*rig);
   Solver solver(rig, options);
   solver.SetColliders(std::move(colliders));
-  FrameOutput output(args.out, many, rig->rest().faces, static_cast<int>(rig->rest().vertices.rows()), args.timing);
+  FrameOutput output(args.out, many, rig->rest().faces, static_cast<int>(rig->rest().vertices.rows()), timing);
 
   bool all_converged = true;
   Points positions;
@@ -281,8 +284,7 @@ Runner AddBlendCommand(CLI::App& app) {
                   "an obstacle: sphere:cx,cy,cz,r | capsule:x1,y1,z1,x2,y2,z2,r | box:cx,cy,cz,hx,hy,hz | "
                   "plane:px,py,pz,nx,ny,nz (solid behind the normal) | mesh:PATH (closed); repeatable");
   cmd->add_option("--pin", args->pins, "VERTEX:x,y,z holds a mesh vertex at a position in every frame; repeatable");
-  cmd->add_option("--frames", args->frames_file,
-                  "a JSON scene: weights, collider motions and pins per frame (see README); writes OUT/frame_*.obj");
+  AddFramesOptions(cmd, &args->input);
   return [args] { return RunBlend(*args); };
 }
 

@@ -6,8 +6,11 @@
 #include <nlohmann/json.hpp>
 #include <sstream>
 
+#include <iostream>
+
 #include "springblend/client.h"
 #include "springblend/error.h"
+#include "take.h"
 
 namespace springblend::cli {
 
@@ -90,6 +93,66 @@ void Scene::ResolveNames(const std::vector<std::string>& names) {
       frames[i].weights = ResolveWeights(written_weights[i], names, fmt::format("{}: frames[{}].weights", source, i));
     }
   }
+}
+
+std::string Scene::FrameName(size_t i) const {
+  if (i < lines.size()) return fmt::format("{} line {}", source, lines[i]);
+  return fmt::format("frames[{}]", i);
+}
+
+void AddFramesOptions(CLI::App* command, FramesInput* input) {
+  command->add_option("--frames", input->frames_file,
+                      "a JSON scene (weights, collider motions and pins per frame; see README), or a captured take "
+                      "(a Live Link Face CSV, recognised by its header; docs/takes.md)");
+  command->add_option("--take", input->take_file,
+                      "a captured take (Live Link Face CSV: ARKit's shapes per frame) driving the targets by name; "
+                      "a .pc2 output starts at the take's timecode")
+      ->excludes(command->get_option("--frames"));
+  command->add_option("--map", input->map_file,
+                      "with a take: a JSON map of shape names to targets ({\"BrowInnerUp\": {\"brows_up\": 0.8}, "
+                      "\"TongueOut\": null, ...}) for names the automatic matching misses");
+  command->add_option("--lost", input->lost,
+                      "with a take: rows where tracking was lost are held at the last tracked weights (hold: the "
+                      "take's frame count and timing) or skipped (skip)")
+      ->check(CLI::IsMember({"hold", "skip"}))
+      ->capture_default_str();
+}
+
+void FramesInput::CheckTakeOptionsUnused() const {
+  if (!map_file.empty() || lost != "hold") {
+    throw Error(ErrorCode::kInvalidInput,
+                fmt::format("--map and --lost go with a take (--take FILE, or --frames FILE with a take's header){}",
+                            frames_file.empty() ? "" : "; " + frames_file + " is a JSON scene file"));
+  }
+}
+
+Scene LoadFrames(const FramesInput& input, const std::vector<std::string>& names, CacheTiming* timing) {
+  const bool is_take = !input.take_file.empty() || LooksLikeTake(input.frames_file);
+  if (!is_take) {
+    input.CheckTakeOptionsUnused();
+    Scene scene = LoadScene(input.frames_file);
+    scene.ResolveNames(names);
+    return scene;
+  }
+  const std::string path = input.take_file.empty() ? input.frames_file : input.take_file;
+  const Take take = ReadTake(path);
+  ShapeMap map;
+  if (!input.map_file.empty()) map = LoadShapeMap(input.map_file);
+  const TakeFrames matched = MatchTake(take, names, input.map_file.empty() ? nullptr : &map,
+                                       LostRowsFromString(input.lost));
+  for (const std::string& line : matched.report.Lines()) std::cerr << "springblend: take " << path << ": " << line << "\n";
+  Scene scene;
+  scene.source = path;
+  scene.lines = matched.lines;
+  for (const auto& w : matched.weights) {
+    scene.frames.push_back(Frame{w});
+    scene.written_weights.push_back(Weights{w});
+  }
+  if (timing != nullptr && !timing->given && take.timing.known) {
+    timing->start_frame = take.timing.start_frame;
+    timing->sample_rate = 1.0;
+  }
+  return scene;
 }
 
 Scene ParseScene(const std::string& text, const std::string& path) {

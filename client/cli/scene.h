@@ -1,10 +1,12 @@
 // Command-line scene input shared by the local and the remote commands: pins and the JSON frames file.
 #pragma once
 
+#include <CLI/CLI.hpp>
 #include <string>
 #include <utility>
 #include <vector>
 
+#include "frame_output.h"
 #include "springblend/solve.h"
 
 namespace springblend::cli {
@@ -38,11 +40,31 @@ struct Scene {
   std::vector<std::string> colliders;
   std::vector<Frame> frames;             // weights filled by ResolveNames when given by name
   std::vector<Weights> written_weights;  // per frame, as written
+  std::vector<int> lines;                // a take's frames: the file line of each (empty for a scene file)
   // Places every frame's named weights by the character's target names (errors name the file and frame).
   void ResolveNames(const std::vector<std::string>& names);
+  // Frame i in messages: "frames[3]", or for a take "take.csv line 5".
+  std::string FrameName(size_t i) const;
 };
 Scene LoadScene(const std::string& path);
 // The same from memory; source names it in messages.
 Scene ParseScene(const std::string& text, const std::string& source);
+
+// Where a command's frames come from: --frames (a JSON scene file, or a take recognised by its header), or --take
+// (a captured performance, docs/takes.md) with --map and --lost.
+struct FramesInput {
+  std::string frames_file;
+  std::string take_file;
+  std::string map_file;
+  std::string lost = "hold";
+  bool given() const { return !frames_file.empty() || !take_file.empty(); }
+  // Throws Error when --map or --lost came without a take.
+  void CheckTakeOptionsUnused() const;
+};
+void AddFramesOptions(CLI::App* command, FramesInput* input);
+// The frames for a character with these target names (weights by name resolved). A take's report goes to stderr
+// once; a take's timing becomes a point cache's start frame (at one sample per frame) unless the user gave one.
+// Throws Error naming the file (and for a take the line and column) at fault.
+Scene LoadFrames(const FramesInput& input, const std::vector<std::string>& names, CacheTiming* timing);
 
 }  // namespace springblend::cli

@@ -36,7 +36,8 @@ struct RemoteArgs {
   double static_tolerance = 0.0, bending_stiffness = 0.0;  // 0: the server's defaults
   std::uint32_t path_intervals = 0, path_max_samples = 0;   // 0: the server's defaults
   // solve
-  std::string character, out, frames_file;
+  std::string character, out;
+  FramesInput input;  // --frames, --take, --map, --lost
   std::vector<std::string> weights;  // numbers, or NAME=NUMBER
   CacheTiming timing;
   int sweep = 0;
@@ -212,12 +213,13 @@ int RunSolve(const RemoteArgs& args) {
   request.set_character_id(id);
   std::vector<Frame> frames;
   std::vector<std::string> collider_specs;
-  if (!args.frames_file.empty()) {
-    Scene scene = LoadScene(args.frames_file);
-    scene.ResolveNames({character.target_names().begin(), character.target_names().end()});
+  CacheTiming timing = args.timing;
+  if (args.input.given()) {
+    Scene scene = LoadFrames(args.input, {character.target_names().begin(), character.target_names().end()}, &timing);
     frames = std::move(scene.frames);
     collider_specs = scene.colliders;
   } else {
+    args.input.CheckTakeOptionsUnused();
     std::vector<double> weights = ResolveWeights(
         ParseWeightItems(args.weights), {character.target_names().begin(), character.target_names().end()},
         "--weights");
@@ -253,7 +255,7 @@ int RunSolve(const RemoteArgs& args) {
   }
 
   FrameOutput output(args.out, /*many=*/true, faces, static_cast<int>(character.summary().surface_vertices()),
-                     args.timing);
+                     timing);
   const bool progress = isatty(STDERR_FILENO) && isatty(STDOUT_FILENO);
   const auto start = std::chrono::steady_clock::now();
   bool all_converged = true;
@@ -438,7 +440,7 @@ std::vector<std::pair<std::string, Runner>> AddServiceCommands(CLI::App& app) {
                     "with --sweep")
       ->delimiter(',');
   solve->add_option("--sweep", args->sweep, "N frames from the rest shape to the weights")->check(CLI::Range(1, 100000));
-  solve->add_option("--frames", args->frames_file, "a JSON scene file (as for blend)");
+  AddFramesOptions(solve, &args->input);
   solve->add_option("--collider", args->colliders, "an obstacle (as for blend); repeatable");
   solve->add_option("--pin", args->pins, "VERTEX:x,y,z in every frame; repeatable");
   solve->add_option("--out", args->out,

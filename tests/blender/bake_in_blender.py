@@ -12,14 +12,12 @@ blender --background --factory-startup --python-exit-code 1 --python bake_in_ble
 import os
 import pathlib
 import sys
-import time
-import types
 
 import bpy
 import numpy as np
 
 sys.path.insert(0, str(pathlib.Path(__file__).parent))
-from blender_scene import check, expect_error_report, setup, shown_positions  # noqa: E402
+from blender_scene import check, expect_error_report, run_modal, setup, shown_positions  # noqa: E402
 
 
 def shown_frames(scene, obj, frames):
@@ -30,54 +28,6 @@ def shown_frames(scene, obj, frames):
     return np.stack(shown)
 
 
-class Stand:
-    """What the modal path touches of Blender's context besides the scene: the window manager's timer and
-    progress bar and the status bar, recorded."""
-
-    def __init__(self):
-        self.scene, self.active_object, self.window = bpy.context.scene, bpy.context.active_object, None
-        self.window_manager, self.workspace = self, self
-        self.texts, self.progress = [], []
-
-    def event_timer_remove(self, timer):
-        pass
-
-    def progress_update(self, value):
-        self.progress.append(value)
-
-    def progress_end(self):
-        pass
-
-    def status_text_set(self, text):
-        self.texts.append(text)
-
-
-def run_modal(operator_class, escape_first=False, seconds=120):
-    """Runs an operator's modal path on stand-ins: prepare, (Esc,) start, TIMER events until it ends. Returns
-    (result, reports, status texts)."""
-    from springblend_blender import jobs, operators
-
-    driven = types.SimpleNamespace(bl_label=operator_class.bl_label, reports=[], _timer=None,
-                                   _read_frames=operator_class._read_frames if hasattr(operator_class, "_read_frames")
-                                   else None)
-    driven.report = lambda kinds, message: driven.reports.append((set(kinds), message))
-    for name, function in [("prepare", operator_class.prepare), ("apply", operator_class.apply),
-                           ("finish", operator_class.finish), ("failed", operators._Guarded.failed),
-                           ("modal", jobs.ModalJob.modal), ("_end", jobs.ModalJob._end)]:
-        setattr(driven, name, types.MethodType(function, driven))
-    context = Stand()
-    driven._job = driven.prepare(context)
-    if escape_first:
-        check(driven.modal(context, types.SimpleNamespace(type="ESC")) == {"PASS_THROUGH"}, "Esc was not passed on")
-    driven._job.start()
-    deadline = time.monotonic() + seconds
-    while True:
-        result = driven.modal(context, types.SimpleNamespace(type="TIMER"))
-        if result != {"RUNNING_MODAL"}:
-            check(not jobs.RUNNING, "a finished job is still listed as running")
-            return result, driven.reports, context.texts
-        check(time.monotonic() < deadline, f"the modal {operator_class.bl_label} did not end within {seconds} s")
-        time.sleep(0.05)
 
 
 def check_modal(config, scene, obj, synchronous):

@@ -30,7 +30,8 @@ def blender_executable():
 
 def run_blender(script, config, directory, server, timeout=300):
     """Runs tests/blender/SCRIPT in Blender headless with CONFIG (written as JSON into directory); the add-on
-    is installed into a private user directory, never into the machine's Blender. Exits on failure."""
+    is installed into a private user directory, never into the machine's Blender. Exits on failure, with the
+    server's log when there is a server (None: the script needs none)."""
     config_path = os.path.join(directory, f"{pathlib.Path(script).stem}.json")
     with open(config_path, "w") as out:
         json.dump(config, out)
@@ -43,7 +44,8 @@ def run_blender(script, config, directory, server, timeout=300):
     print(result.stdout)
     print(result.stderr, file=sys.stderr)
     if result.returncode != 0:
-        raise SystemExit(f"{script}: Blender exited {result.returncode}; server log:\n{server.log()}")
+        raise SystemExit(f"{script}: Blender exited {result.returncode}"
+                         + (f"; server log:\n{server.log()}" if server is not None else ""))
     return result.stdout
 
 

@@ -6,6 +6,8 @@ shows of a mesh. Runs in Blender's Python; the test data come from springblend_t
 import json
 import pathlib
 import sys
+import time
+import types
 
 import bmesh
 import bpy
@@ -114,3 +116,54 @@ def shown_positions(obj):
     mesh.vertices.foreach_get("co", flat)
     evaluated.to_mesh_clear()
     return flat.reshape(-1, 3).astype(np.float64)
+
+
+class Stand:
+    """What the modal path touches of Blender's context besides the scene: the window manager's timer and
+    progress bar and the status bar, recorded."""
+
+    def __init__(self):
+        self.scene, self.active_object, self.window = bpy.context.scene, bpy.context.active_object, None
+        self.window_manager, self.workspace = self, self
+        self.texts, self.progress = [], []
+
+    def event_timer_remove(self, timer):
+        pass
+
+    def progress_update(self, value):
+        self.progress.append(value)
+
+    def progress_end(self):
+        pass
+
+    def status_text_set(self, text):
+        self.texts.append(text)
+
+
+def run_modal(operator_class, escape_first=False, seconds=120, properties=None):
+    """Runs an operator's modal path on stand-ins: prepare, (Esc,) start, TIMER events until it ends. properties:
+    the operator's property values ({name: value}). Returns (result, reports, status texts)."""
+    from springblend_blender import jobs, operators
+
+    driven = types.SimpleNamespace(bl_label=operator_class.bl_label, reports=[], _timer=None,
+                                   _read_frames=operator_class._read_frames if hasattr(operator_class, "_read_frames")
+                                   else None)
+    driven.__dict__.update(properties or {})
+    driven.report = lambda kinds, message: driven.reports.append((set(kinds), message))
+    for name, function in [("prepare", operator_class.prepare), ("apply", operator_class.apply),
+                           ("finish", operator_class.finish), ("failed", operators._Guarded.failed),
+                           ("modal", jobs.ModalJob.modal), ("_end", jobs.ModalJob._end)]:
+        setattr(driven, name, types.MethodType(function, driven))
+    context = Stand()
+    driven._job = driven.prepare(context)
+    if escape_first:
+        check(driven.modal(context, types.SimpleNamespace(type="ESC")) == {"PASS_THROUGH"}, "Esc was not passed on")
+    driven._job.start()
+    deadline = time.monotonic() + seconds
+    while True:
+        result = driven.modal(context, types.SimpleNamespace(type="TIMER"))
+        if result != {"RUNNING_MODAL"}:
+            check(not jobs.RUNNING, "a finished job is still listed as running")
+            return result, driven.reports, context.texts
+        check(time.monotonic() < deadline, f"the modal {operator_class.bl_label} did not end within {seconds} s")
+        time.sleep(0.05)

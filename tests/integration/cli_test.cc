@@ -8,6 +8,7 @@
 #include <chrono>
 #include <filesystem>
 #include <fstream>
+#include <sstream>
 
 #include "integration/cli_process.h"
 #include "springblend/point_cache.h"
@@ -306,6 +307,100 @@ TEST(CliBlend, PointCacheStartsAtTheShotsFirstFrame) {
   EXPECT_EQ(objs.exit_code, 2);
   EXPECT_THAT(objs.stderr_text, HasSubstr("is not a .pc2 file"));
   EXPECT_EQ(RunCli(args + "--sample-rate 0 --out " + dir.File("zero.pc2"), dir).exit_code, 2);
+}
+
+std::string FileBytes(const std::string& path) {
+  std::ifstream in(path, std::ios::binary);
+  return std::string(std::istreambuf_iterator<char>(in), std::istreambuf_iterator<char>());
+}
+
+// A captured take (issue 59) on the bundled face: the CLI's point cache of a --linear solve of the excerpt is the
+// very file the same frames give as a scene file, to the bit. The expected frames are read here with a plain
+// split of the CSV (ARKit's JawOpen is ICT's jawOpen, MouthSmileLeft its mouthSmile_L), and the cache starts at
+// the take's first timecode, 16:56:29:40 at 60 per second stepping by 2: a 30 fps take.
+TEST(CliTake, ALinearSolveOfATakeIsItsFramesGivenAsASceneFileToTheBit) {
+  TempDir dir;
+  const std::string take = DataPath("take/alex_rom_4_excerpt.csv");
+  const std::vector<std::pair<std::string, std::string>> names = {{"jawOpen", "JawOpen"},
+                                                                  {"mouthClose", "MouthClose"},
+                                                                  {"mouthFunnel", "MouthFunnel"},
+                                                                  {"mouthSmile_L", "MouthSmileLeft"},
+                                                                  {"mouthStretch_L", "MouthStretchLeft"}};
+  std::string face = "blend --linear --rest " + DataPath("face/generic_neutral_mesh.obj");
+  for (const auto& [target, shape] : names) face += " --target " + DataPath("face/" + target + ".obj");
+  std::ifstream csv(take);
+  std::string line;
+  std::getline(csv, line);
+  std::vector<std::string> header;
+  for (std::stringstream fields(line); std::getline(fields, line, ',');) header.push_back(line);
+  nlohmann::json frames = nlohmann::json::array();
+  std::string first_timecode;
+  while (std::getline(csv, line)) {
+    std::vector<std::string> row;
+    for (std::stringstream fields(line); std::getline(fields, line, ',');) row.push_back(line);
+    if (first_timecode.empty()) first_timecode = row[0];
+    nlohmann::json weights;
+    for (const auto& [target, shape] : names) {
+      const size_t column = std::find(header.begin(), header.end(), shape) - header.begin();
+      weights[target] = std::stod(row.at(column));
+    }
+    frames.push_back({{"weights", weights}});
+  }
+  ASSERT_EQ(frames.size(), 40u);
+  ASSERT_EQ(first_timecode.substr(0, 11), "16:56:29:40");
+  std::ofstream(dir.File("scene.json")) << nlohmann::json({{"frames", frames}}).dump();
+  const double start = ((16 * 3600 + 56 * 60 + 29) * 60 + 40) / 2.0;
+
+  const CliRun from_take = RunCli(face + " --take " + take + " --out " + dir.File("take.pc2"), dir);
+  ASSERT_EQ(from_take.exit_code, 0) << from_take.stderr_text;
+  EXPECT_EQ(from_take.lines.size(), 40u);
+  // The report, once: rotations left out, shapes this face lacks.
+  EXPECT_THAT(from_take.stderr_text, HasSubstr("alex_rom_4_excerpt.csv: 40 rows, 40 frames; 30 frames per second "
+                                               "(timecode at 60 per second, step 2), first frame 1829690\n"));
+  EXPECT_THAT(from_take.stderr_text, HasSubstr("not weights, left out: HeadYaw, HeadPitch"));
+  EXPECT_THAT(from_take.stderr_text, HasSubstr("shapes that drive no target: EyeBlinkLeft"));
+  const CliRun from_scene = RunCli(face + fmt::format(" --frames {} --start-frame {} --out {}", dir.File("scene.json"),
+                                                      start, dir.File("scene.pc2")),
+                                   dir);
+  ASSERT_EQ(from_scene.exit_code, 0) << from_scene.stderr_text;
+  const std::string bytes = FileBytes(dir.File("take.pc2"));
+  ASSERT_EQ(bytes.size(), 32u + 40u * 6706u * 12u);
+  EXPECT_TRUE(bytes == FileBytes(dir.File("scene.pc2")));
+  EXPECT_EQ(ReadPointCache(dir.File("take.pc2")).start_frame, static_cast<float>(start));
+  // --frames recognises the take by its header; --start-frame and --sample-rate given win over the timecode.
+  const CliRun by_header = RunCli(face + " --frames " + take + " --out " + dir.File("header.pc2"), dir);
+  ASSERT_EQ(by_header.exit_code, 0) << by_header.stderr_text;
+  EXPECT_TRUE(FileBytes(dir.File("header.pc2")) == bytes);
+  const CliRun placed =
+      RunCli(face + " --take " + take + " --start-frame 1001 --sample-rate 2 --out " + dir.File("placed.pc2"), dir);
+  ASSERT_EQ(placed.exit_code, 0) << placed.stderr_text;
+  const PointCache cache = ReadPointCache(dir.File("placed.pc2"));
+  EXPECT_EQ(std::make_pair(cache.start_frame, cache.sample_rate), std::make_pair(1001.0f, 2.0f));
+}
+
+// Bad takes are refused with exit code 2, the file, line and column named, and nothing written.
+TEST(CliTake, BadTakesAreRefusedNamingTheLineAndColumn) {
+  TempDir dir;
+  const std::string face = "blend --linear --rest " + DataPath("face/generic_neutral_mesh.obj") + " --target " +
+                           DataPath("face/jawOpen.obj");
+  const auto refused = [&](const std::string& text, const std::string& message, const std::string& extra = "") {
+    std::ofstream(dir.File("bad.csv")) << text;
+    const CliRun run = RunCli(face + " --take " + dir.File("bad.csv") + extra + " --out " + dir.File("out.pc2"), dir);
+    EXPECT_EQ(run.exit_code, 2) << text;
+    EXPECT_THAT(run.stderr_text, HasSubstr(message));
+    EXPECT_FALSE(std::filesystem::exists(dir.File("out.pc2")) || std::filesystem::exists(dir.File("out.pc2.partial")));
+  };
+  const std::string header = "Timecode,BlendShapeCount,JawOpen,HeadYaw\n00:00:00:00,2,0.5,0\n";
+  refused(header + "00:00:00:01,2,0.5\n", "bad.csv: line 3, column 4: the row ends after 3 of the header's 4 columns");
+  refused(header + "00:00:00:01,2,x,0\n", "bad.csv: line 3, column 3: (JawOpen) 'x' is not a number");
+  refused("Timecode,BlendShapeCount,TongueOut\n00:00:00:00,1,0.5\n",
+          "bad.csv: line 1: no column of the header is a shape of this rig");
+  refused(header, "--lost", " --lost drop");
+  // A lost-tracking row is no error; --map and --lost without a take are.
+  refused(header + "00:00:00:01,0\n00:00:00:02,2,2000,0\n", "bad.csv line 4: ");
+  const CliRun map_alone = RunCli(face + " --weights 0.5 --map m.json --out " + dir.File("one.obj"), dir);
+  EXPECT_EQ(map_alone.exit_code, 2);
+  EXPECT_THAT(map_alone.stderr_text, HasSubstr("--map and --lost go with a take"));
 }
 
 // Targets that move every vertex leave a rig without an anchor floating: colliders are refused, and the

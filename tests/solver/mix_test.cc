@@ -11,9 +11,9 @@
 #include <cmath>
 #include <iostream>
 
-#include "live_link_take.h"
 #include "mix.h"
 #include "rig_internals.h"
+#include "take.h"
 #include "target_paths.h"
 #include "test_util.h"
 
@@ -45,8 +45,8 @@ std::shared_ptr<const Rig> FaceRig() {
 
 // The take's frames 1140-1179 (every other one: 20 frames at 15 per second) as weights of the rig's targets.
 std::vector<std::vector<double>> TakeFrames(const Rig& rig) {
-  const take::Take t = take::ReadTake(DataPath("take/alex_rom_4_excerpt.csv"));
-  const std::vector<std::vector<double>> all = take::Weights(t, rig.target_names());
+  const cli::Take t = cli::ReadTake(DataPath("take/alex_rom_4_excerpt.csv"));
+  const std::vector<std::vector<double>> all = cli::MatchTake(t, rig.target_names()).weights;
   std::vector<std::vector<double>> frames;
   for (size_t i = 0; i < all.size(); i += 2) frames.push_back(all[i]);
   return frames;

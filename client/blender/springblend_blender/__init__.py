@@ -19,12 +19,12 @@ bl_info = {
 
 if "bpy" in locals():  # Blender's "Reload Scripts"
     import importlib
-    for _module in (connection, settings, scene_data, store, live, operators, panel):  # noqa: F821
+    for _module in (connection, settings, scene_data, store, live, take_import, operators, panel):  # noqa: F821
         importlib.reload(_module)
 
 import bpy  # noqa: E402
 
-from . import connection, live, operators, panel, scene_data, settings, store  # noqa: E402,F401
+from . import connection, live, operators, panel, scene_data, settings, store, take_import  # noqa: E402,F401
 
 _classes = settings.CLASSES + operators.CLASSES + panel.CLASSES
 

@@ -8,7 +8,7 @@ import time
 
 import bpy
 
-from . import connection, jobs, live, rig_import, scene_data, store
+from . import connection, jobs, live, rig_import, scene_data, store, take_import
 from .scene_data import UserError
 
 
@@ -182,6 +182,73 @@ class SPRINGBLEND_OT_import_rig(_Guarded, bpy.types.Operator):
         keys = len(obj.data.shape_keys.key_blocks) - 1
         self.report({"INFO"}, f"springblend: imported '{obj.name}' ({len(obj.data.vertices)} vertices, {keys} shape "
                               "keys driven by its target sliders in Object Properties > Custom Properties)")
+        return {"FINISHED"}
+
+
+class SPRINGBLEND_OT_import_take(jobs.ModalJob, _Guarded, bpy.types.Operator):
+    """Import a captured take (a Live Link Face CSV: ARKit's shapes per frame) onto the active character's sliders
+    as keyframes at the take's frame rate, the scene's frame range set from it (read off the main thread; Esc
+    cancels)"""
+    bl_idname = "springblend.import_take"
+    bl_label = "Import Take"
+    bl_options = {"REGISTER", "UNDO"}
+
+    filepath: bpy.props.StringProperty(subtype="FILE_PATH")
+    filter_glob: bpy.props.StringProperty(default="*.csv", options={"HIDDEN"})
+    map_path: bpy.props.StringProperty(
+        name="Name Map", subtype="FILE_PATH",
+        description="A JSON map of the take's shape names to sliders, for names the automatic matching misses "
+                    "(docs/takes.md; the CLI's --map)")
+    lost: bpy.props.EnumProperty(
+        name="Lost Tracking", default="HOLD",
+        items=[("HOLD", "Hold", "Rows where tracking was lost keep the last tracked weights (the take's timing)"),
+               ("SKIP", "Skip", "Rows where tracking was lost are left out")],
+        description="What rows where the capture lost the face become (the CLI's --lost)")
+    start_frame: bpy.props.IntProperty(name="Start Frame", default=1, description="The frame of the take's first row")
+
+    @classmethod
+    def poll(cls, context):
+        return not jobs.RUNNING and context.active_object is not None and context.active_object.type == "MESH"
+
+    def invoke(self, context, event):
+        if not self.filepath:
+            context.window_manager.fileselect_add(self)
+            return {"RUNNING_MODAL"}
+        return jobs.ModalJob.invoke(self, context, event)
+
+    def execute(self, context):
+        if bpy.app.background or context.window is None:
+            return _Guarded.execute(self, context)
+        return jobs.ModalJob.invoke(self, context, None)  # chosen in the file browser: keyed off the main thread
+
+    def run(self, context):
+        return self.run_job(context)
+
+    def prepare(self, context):
+        obj = context.active_object
+        if not self.filepath:
+            raise UserError("choose the take (a Live Link Face CSV) to import")
+        self._object_name, self._start = obj.name, int(self.start_frame)
+        self._path = bpy.path.abspath(self.filepath)
+        map_path = bpy.path.abspath(self.map_path) if self.map_path else None
+        return take_import.prepare(obj, self._path, map_path, self.lost)
+
+    def apply(self, context, items):
+        obj = bpy.data.objects.get(self._object_name)
+        if obj is None:
+            raise UserError(f"'{self._object_name}' was removed while the take was imported")
+        for name, kind, values in items:
+            take_import.write_keys(obj, name, kind, values, self._start)
+
+    def finish(self, context, job):
+        performance = job.result
+        take_import.set_timing(context.scene, performance, self._start)
+        rate = f"{performance.frame_rate:g} fps" if performance.frame_rate else "the scene's frame rate (no timecode)"
+        self.report({"INFO"}, f"springblend: keyed {len(performance.weights)} frames of {self._path} on "
+                              f"'{self._object_name}' ({len(performance.target_names)} sliders) from frame "
+                              f"{self._start}, {rate}")
+        if performance.report.noteworthy:
+            self.report({"WARNING"}, "springblend: take: " + "; ".join(performance.report.lines()[1:]))
         return {"FINISHED"}
 
 
@@ -362,5 +429,5 @@ class SPRINGBLEND_OT_live_report(bpy.types.Operator):
 
 
 CLASSES = [SPRINGBLEND_OT_check_server, SPRINGBLEND_OT_upload, SPRINGBLEND_OT_export_rig, SPRINGBLEND_OT_import_rig,
-           SPRINGBLEND_OT_bake, SPRINGBLEND_OT_live_preview,
+           SPRINGBLEND_OT_import_take, SPRINGBLEND_OT_bake, SPRINGBLEND_OT_live_preview,
            SPRINGBLEND_OT_live_report]

@@ -34,6 +34,7 @@ class SPRINGBLEND_PT_main(bpy.types.Panel):
             row.operator("springblend.upload", icon="EXPORT")
             row.operator("springblend.export_rig", text="", icon="FILE_TICK")
             row.operator("springblend.import_rig", text="", icon="IMPORT")
+            box.operator("springblend.import_take", icon="ANIM")
             box.prop(obj, "springblend_hold_outer_rim")
             density = box.row(align=True)
             density.prop(obj, "springblend_path_intervals")

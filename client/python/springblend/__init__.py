@@ -12,13 +12,15 @@ Install it (pip install client/python, docs/python.md) or put the build's python
         solution.positions  # #frames by #V by 3 float32
         solution.write_pc2("shot.pc2")  # a point cache for the DCC's Mesh Cache (frame = index + 1)
         face = client.upload_rig("face/rig.json")  # in-betweens, masks, combinations (springblend.rigfile)
+        take = client.read_take(face.id, "take.csv")  # a captured performance (springblend.performance)
+        client.solve(face.id, take.weights).write_pc2("take.pc2", take.start_frame)
 """
 
 from springblend import _dependencies
 
 _dependencies.check()  # a missing numpy, grpcio or protobuf is named, with how to install it
 
-from springblend import colliders, pointcache, rigfile  # noqa: E402
+from springblend import colliders, performance, pointcache, rigfile  # noqa: E402
 from springblend._version import __version__  # noqa: E402
 from springblend._generated import pb  # noqa: E402
 from springblend.client import (  # noqa: E402
@@ -26,4 +28,4 @@ from springblend.client import (  # noqa: E402
 from springblend.errors import SpringblendError  # noqa: E402
 
 __all__ = ["CHARACTER_HEADER", "CHARACTER_ID_METADATA", "Client", "InteractiveSession", "Solution", "SolvedFrame",
-           "SpringblendError", "__version__", "colliders", "pb", "pointcache", "rigfile"]
+           "SpringblendError", "__version__", "colliders", "pb", "performance", "pointcache", "rigfile"]

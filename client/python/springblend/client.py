@@ -13,7 +13,7 @@ import typing
 import grpc
 import numpy as np
 
-from springblend import arrays, colliders as shapes, pointcache, rigfile, routing
+from springblend import arrays, colliders as shapes, performance, pointcache, rigfile, routing
 from springblend._generated import health_pb2, pb, pb_grpc
 from springblend.errors import SpringblendError, invalid_argument
 
@@ -375,6 +375,25 @@ class Client:
             raise self._error(error) from None
         finally:
             call.cancel()  # a no-op once the stream has ended; a caller that stops early ends it on the server
+
+    def read_take(self, character_id, take, map=None, lost="hold", warn=True):  # noqa: A002 - the CLI's --map
+        """A captured take (a Live Link Face CSV's path, or a springblend.performance.Take) matched to the
+        character's targets: a springblend.performance.Performance whose weights solve() and solve_frames() take
+        as they are, and whose report says what was left out (also given as one TakeWarning). map, lost: as
+        springblend.performance.match (the CLI's --map and --lost)."""
+        return performance.match(take, self.target_names(self.resolve(character_id)), map=map, lost=lost, warn=warn)
+
+    def solve_take(self, character_id, take, map=None, lost="hold", **options):  # noqa: A002
+        """Streams the solve of a captured take, as solve_frames streams frames: take is a path (read and matched
+        to the character's targets with map and lost, see read_take) or a Performance read for this character.
+        options: those of solve_frames (colliders, collider_transforms, pins, linear, ...)."""
+        if not isinstance(take, performance.Performance):
+            take = self.read_take(character_id, take, map=map, lost=lost)
+        names = self.target_names(self.resolve(character_id))
+        if list(take.target_names) != names:
+            raise invalid_argument(f"solve_take: the performance was matched to targets {take.target_names}, not "
+                                   f"this character's {names}: read it with read_take for this character")
+        return self.solve_frames(character_id, take.weights, **options)
 
     def interactive(self, character_id, colliders=(), tolerance=0.0, max_iterations=0, linear=False,
                     normals=False, previews=False):
