@@ -3,8 +3,9 @@
 // (tests/data/take, MIT): where many expressions act at once the superposed mix stays with what its expressions do
 // (within the largest of their own physical corrections of the linear blend), moves with the take (no pops), and every
 // frame is a converged, certified local minimum; the paper's blend of rest lengths on the same frames goes farther
-// than any of that. A frame that moves one physical target is the paper's in both models, to the bit; the default
-// corrective (mouthClose) alone is its linear blend. Each test builds the five-target face rig (30-100 s in release).
+// than any of that. A frame that moves one physical target is the paper's in both models, to the bit, and a mix
+// goes to it continuously as the other weight goes to 0; the default corrective (mouthClose) alone is its linear
+// blend. Each test builds the five-target face rig (30-100 s in release).
 #include <gtest/gtest.h>
 
 #include <algorithm>

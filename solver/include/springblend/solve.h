@@ -61,11 +61,13 @@ SolveMethod SolveMethodFromString(const std::string& name);  // "newton" | "newt
 // How a frame that moves several targets combines them (a frame that moves one target is the paper's in both;
 // solver/src/mix.h has the formulas).
 enum class MixModel {
-  // The frame's prediction is the linear blend plus each target's own physical correction at its weight (its
-  // path, the target alone), and its springs rest at that prediction's lengths plus each target's own residual
-  // strain: deltas add as vectors, each target keeps its own correction (a jaw's rotation), and length changes do
-  // not add up. Faithful where captured faces move 20-40 expressions at once; targets found to be correctives
-  // (RigSummary::TargetPathSummary::corrective) add as linear deltas.
+  // The frame's prediction is the linear blend plus the targets' own physical corrections at their weights (each
+  // its path, the target alone) averaged per vertex by their magnitudes, and its springs rest at that
+  // prediction's lengths, plus the targets' residual strains only while one target dominates the frame: deltas
+  // add as vectors, each target keeps its own correction (a jaw's rotation) where it alone corrects, and neither
+  // length changes nor corrections add up. Faithful where captured faces move 20-40 expressions at once, and
+  // there the prediction is the answer (energy zero, no Newton step). Correctives (linear_targets) add as linear
+  // deltas.
   kSuperposed,
   // The paper's blend (section 3.3): r̄_q = r_q^0 + sum_t w_t (r_q^t - r_q^0), every target's length change
   // added up. Where many targets move the same springs (a mouth) the mix buckles into a shape none of them has.
