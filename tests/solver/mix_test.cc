@@ -4,8 +4,9 @@
 // (within the largest of their own physical corrections of the linear blend), moves with the take (no pops), and every
 // frame is a converged, certified local minimum; the paper's blend of rest lengths on the same frames goes farther
 // than any of that. A frame that moves one physical target is the paper's in both models, to the bit, and a mix
-// goes to it continuously as the other weight goes to 0; the default corrective (mouthClose) alone is its linear
-// blend. Each test builds the five-target face rig (30-100 s in release).
+// goes to it continuously as the other weight goes to 0 (a sweep through the strains' fading out does not pop);
+// the default corrective (mouthClose) alone is its linear blend. Each test builds the five-target face rig (30-100 s
+// in release).
 #include <gtest/gtest.h>
 
 #include <algorithm>
@@ -174,6 +175,36 @@ TEST(MixTest, OneTargetIsThePapersFrameACorrectiveAloneItsBlendMixesAreStateless
     std::cout << "  mouthFunnel at " << epsilon << ": " << distance / diagonal << " of the diagonal from jawOpen's "
               << "frame (the linear blend " << linear_distance / diagonal << ")\n";
     EXPECT_LE(distance, 2.0 * linear_distance + 1e-6 * diagonal) << epsilon;
+  }
+  // Along a sweep of mouthFunnel from 0 to 0.6 beside jawOpen at 0.6 the strains fade out as jawOpen stops
+  // dominating (the share falls and passes strictly between 0 and 1): every frame converged and certified, no pop.
+  {
+    SolveOptions certified;
+    certified.certify_minimum = true;
+    Solver sweep(rig, certified);
+    Points previous, previous_linear;
+    double previous_share = 1.0;
+    int between = 0;
+    for (int i = 0; i <= 12; ++i) {
+      std::vector<double> two = one;
+      two[2] = 0.05 * i;
+      Points x, lin;
+      const SolveSummary s = sweep.Solve(Frame{two}, &x);
+      l.Solve(Frame{two}, &lin);
+      ASSERT_TRUE(s.converged()) << i << ": " << s.message;
+      EXPECT_EQ(s.minimum, MinimumCheck::kMinimum) << i;
+      const double share = i == 0 ? 1.0 : s.mix_strain_share;
+      EXPECT_LE(share, previous_share + 1e-12) << i;
+      between += share > 0.0 && share < 1.0;
+      previous_share = share;
+      if (i > 0) {
+        const double step = MaxDistance(x, previous), linear_step = MaxDistance(lin, previous_linear);
+        if (step > 1e-3 * diagonal) EXPECT_LE(step, 2.0 * linear_step) << "step " << i;
+      }
+      previous = x;
+      previous_linear = lin;
+    }
+    EXPECT_GE(between, 1);
   }
   // A mix is the same alone and after other frames.
   const std::vector<std::vector<double>> frames = TakeFrames(*rig);
