@@ -532,8 +532,8 @@ std::string CharacterStore::PathOf(const std::string& id) const {
 }
 
 std::optional<PrecomputedLocation> CharacterStore::WriteFile(const std::string& id, const std::string& payload,
-                                                             const PrecomputedWriter& precomputed,
-                                                             std::string* paths_digest, const std::string& expected) {
+                                                             const PrecomputedWriter& precomputed, Written* written,
+                                                             const std::string& expected) {
   if (options_.directory.empty()) return std::nullopt;
   // Atomic: a uniquely named temporary file, flushed to disk, then renamed over the final name. Readers see
   // the whole file or none; a crash leaves at most a temporary file, which is never read, and which the next
@@ -550,8 +550,9 @@ std::optional<PrecomputedLocation> CharacterStore::WriteFile(const std::string& 
       if (errno == EEXIST) continue;
       // The cache directory is an optimisation; serving goes on from memory, said and counted.
       ++write_failures_;
-      spdlog::warn("cache file {} not written: cannot create {} ({}); the character is served from memory only",
-                   path, temporary, std::strerror(errno));
+      const std::string why = fmt::format("cannot create {} ({})", temporary, std::strerror(errno));
+      spdlog::warn("cache file {} not written: {}; the character is served from memory only", path, why);
+      if (written != nullptr) written->failure = why;
       return std::nullopt;
     }
     // A starting replica may have opened the new file in the moment before the lock: it then holds the lock
@@ -564,7 +565,10 @@ std::optional<PrecomputedLocation> CharacterStore::WriteFile(const std::string& 
       fd = -1;
     }
   }
-  if (fd < 0) return std::nullopt;
+  if (fd < 0) {
+    if (written != nullptr) written->failure = "no temporary file could be made";
+    return std::nullopt;
+  }
   const std::uint64_t length = payload.size();
   std::string header(kFileMagic, sizeof(kFileMagic));
   header += Sha256(payload);
@@ -603,26 +607,27 @@ std::optional<PrecomputedLocation> CharacterStore::WriteFile(const std::string& 
        ::fsync(fd) == 0;
   if (!ok || std::rename(temporary.c_str(), path.c_str()) != 0) {
     ++write_failures_;
-    spdlog::warn("cache file {} not written ({}); the character is served from memory only", path,
-                 failure.empty() ? std::strerror(errno) : failure);
+    if (failure.empty()) failure = std::strerror(errno);
+    spdlog::warn("cache file {} not written ({}); the character is served from memory only", path, failure);
+    if (written != nullptr) written->failure = failure;
     ::unlink(temporary.c_str());
     ::close(fd);
     if (lost) std::rethrow_exception(lost);
     return std::nullopt;
   }
   ::flock(fd, LOCK_UN);  // after the rename; the descriptor stays open for the rig to read its paths through
-  if (paths_digest != nullptr) *paths_digest = digest;
+  if (written != nullptr) written->paths_digest = digest;
   Remember(id, fd);
   return PrecomputedLocation{path, digest_at + static_cast<std::int64_t>(kDigestBytes), part_size,
                              std::make_shared<const OpenFile>(fd)};
 }
 
 std::optional<PrecomputedLocation> CharacterStore::WriteFile(const std::string& id, const std::string& payload,
-                                                             const Rig& rig, std::string* paths_digest,
+                                                             const Rig& rig, Written* written,
                                                              const std::string& expected) {
   return WriteFile(
       id, payload, [&rig](const std::function<bool(std::string_view)>& write) { return rig.WritePrecomputed(write); },
-      paths_digest, expected);
+      written, expected);
 }
 
 void CharacterStore::Remember(const std::string& id, int fd) {
@@ -790,11 +795,11 @@ std::shared_ptr<const CharacterStore::Entry> CharacterStore::Rebuild(const std::
   }
   // Paths solved here (an older file's, or ones that did not fit) are written at once and read from the file.
   bool written = false;
-  std::string digest;
+  Written write;
   control.spool_directory = options_.directory;
   control.persist = [&](const PrecomputedWriter& bytes) {
     written = true;
-    return WriteFile(id, file.payload, bytes, &digest);
+    return WriteFile(id, file.payload, bytes, &write);
   };
   auto entry = Build(id, file.data, control);
   const RigSummary& summary = entry->rig->summary();
@@ -806,8 +811,8 @@ std::shared_ptr<const CharacterStore::Entry> CharacterStore::Rebuild(const std::
                : file.data.options.target_paths ? fmt::format("solved ({:.0f} ms)", summary.path_ms)
                                                  : std::string("off"));
   // Written once, so the next restart (or another replica) loads what this one had to solve.
-  if ((!file.precomputed || unused) && !written) WriteFile(id, file.payload, *entry->rig, &digest);
-  entry->paths_digest = summary.paths_loaded ? file.paths_digest : digest;
+  if ((!file.precomputed || unused) && !written) WriteFile(id, file.payload, *entry->rig, &write);
+  entry->paths_digest = summary.paths_loaded ? file.paths_digest : write.paths_digest;
   std::lock_guard lock(mutex_);
   if (summary.paths_loaded) ++stats_.paths_loaded;
   if (!file.precomputed || unused) ++stats_.upgraded_files;
@@ -976,7 +981,7 @@ void CharacterStore::RunBuild(const std::shared_ptr<PendingBuild>& flight,
   std::exception_ptr error;
   bool rebuilt = false;
   bool written = false;  // this upload's cache file
-  std::string digest;    // of its paths
+  Written write;         // how it went
   try {
     if (control.stop()) throw Error(ErrorCode::kCancelled, "the rig build was cancelled");
     if (flight->progress_.from_file) {
@@ -992,11 +997,14 @@ void CharacterStore::RunBuild(const std::shared_ptr<PendingBuild>& flight,
       control.spool_directory = options_.directory;  // each path out of memory as soon as it is solved
       control.persist = [&](const PrecomputedWriter& bytes) {
         written = true;
-        return WriteFile(id, payload, bytes, &digest);
+        return WriteFile(id, payload, bytes, &write);
       };
       auto built = Build(id, *data, control);  // throws Error for bad meshes, or when stopped; nothing is stored then
-      if (!written) WriteFile(id, payload, *built->rig, &digest);
-      built->paths_digest = digest;
+      if (!written) WriteFile(id, payload, *built->rig, &write);
+      built->paths_digest = write.paths_digest;
+      if (!options_.directory.empty() && !write.failure.empty()) {
+        built->not_persisted = "its cache file could not be written (" + write.failure + ")";
+      }
       entry = std::move(built);
     }
   } catch (...) {

@@ -102,6 +102,9 @@ class CharacterStore {
     // SHA-256 of the rig's precomputed paths as they were written to, or loaded from, its cache file; empty when
     // they were not. A cache file written anew from the rig must give the same (else the rig is damaged).
     std::string paths_digest;
+    // Why its upload's cache file could not be written (a read-only or full directory, no descriptor left): it is
+    // served from memory only, unknown to a restart or another replica. Empty when written, or memory only.
+    std::string not_persisted;
   };
 
   explicit CharacterStore(StoreOptions options);
@@ -195,14 +198,18 @@ class CharacterStore {
   std::string PathOf(const std::string& id) const;
   // Where the precomputed part landed (for the rig to read its samples from), nullopt when not written.
   // The precomputed part is told by `precomputed` in pieces (a rig's WritePrecomputed), never held together.
-  // `paths_digest` (when given) gets the SHA-256 of the precomputed part written. Throws DataLossError (nothing
-  // written) when the rig's own paths cannot be read back from the file they were left in, or (`expected` given)
-  // are not those it was built with.
+  // What a write gave: the SHA-256 of the precomputed part written, or why nothing was.
+  struct Written {
+    std::string paths_digest;
+    std::string failure;
+  };
+  // `written` (when given) says how it went. Throws DataLossError (nothing written) when the rig's own paths
+  // cannot be read back from the file they were left in, or (`expected` given) are not those it was built with.
   std::optional<PrecomputedLocation> WriteFile(const std::string& id, const std::string& payload,
-                                               const PrecomputedWriter& precomputed,
-                                               std::string* paths_digest = nullptr, const std::string& expected = {});
+                                               const PrecomputedWriter& precomputed, Written* written = nullptr,
+                                               const std::string& expected = {});
   std::optional<PrecomputedLocation> WriteFile(const std::string& id, const std::string& payload, const Rig& rig,
-                                               std::string* paths_digest = nullptr, const std::string& expected = {});
+                                               Written* written = nullptr, const std::string& expected = {});
   // An upload's character found in memory: true once its cache file is whole (checked, or written anew from the
   // rig); false when the rig could not give back the paths it was built with (then it is dropped).
   bool KeepFile(const std::shared_ptr<const Entry>& entry, const CharacterData& data);

@@ -594,6 +594,10 @@ TEST(CacheFiles, AReadOnlyCacheDirectoryIsSaidAndCounted) {
   v1::BuildOptions options;
   options.set_no_target_paths(true);
   const v1::Character character = client.Upload(cylinder.rest, cylinder.targets, options, "cylinder");
+  // Hardening IV (items 6 and 14): the upload's answer, and the character's description, say it was not kept.
+  EXPECT_THAT(::testing::PrintToString(character.summary().notes()), HasSubstr("not persisted: its cache file"));
+  EXPECT_THAT(::testing::PrintToString(client.Get(character.id()).summary().notes()),
+              HasSubstr("served from this server's memory only"));
   EXPECT_EQ(client.Solve(SweepRequest(character.id(), 2, {0.5, 0.5}), [](const v1::SolvedFrame&) {}), 2);
   EXPECT_GE(Metric(server.metrics_port(), "springblend_cache_write_failures_total"), 1);
   EXPECT_THAT(ReadLog(log), HasSubstr("not written"));
