@@ -180,4 +180,18 @@ inline grpc::Status BuildStatus(std::exception_ptr error, grpc::CallbackServerCo
   }
 }
 
+// The status of a frame's (or preview's) error. A rig whose paths could not be read back from its cache file (cut
+// short or failing under it: DataLossError) fails every frame the same way: it is dropped from the store, so the
+// next upload or call that needs the character builds it anew, and the client is told so.
+inline grpc::Status FrameStatus(const std::exception& error, const std::shared_ptr<const CharacterStore::Entry>& entry,
+                                ServiceContext& context) {
+  if (entry != nullptr && dynamic_cast<const DataLossError*>(&error) != nullptr) {
+    context.store.Drop(entry, error.what());
+    return ToStatus(DataLossError(std::string(error.what()) +
+                                  "; the character was dropped from memory: retry (it is rebuilt from its cache file "
+                                  "if that is whole) or upload it again"));
+  }
+  return ToStatus(error);
+}
+
 }  // namespace springblend::server

@@ -155,7 +155,7 @@ std::string StreamSha256(std::istream& in, std::uint64_t n) {
 // precomputed paths (possibly hundreds of megabytes) are checked as they are read and not kept: *precomputed
 // says where they are, for the rig to read its samples from the file as frames need them.
 bool ReadCacheFile(std::istream& in, std::string* payload, std::optional<CharacterStore::FilePart>* precomputed,
-                   std::string* why) {
+                   std::string* paths_digest, std::string* why) {
   in.seekg(0, std::ios::end);
   const std::uint64_t size = static_cast<std::uint64_t>(std::max<std::streamoff>(0, in.tellg()));
   in.seekg(0);
@@ -184,14 +184,16 @@ bool ReadCacheFile(std::istream& in, std::string* payload, std::optional<Charact
     *why = "the precomputed paths' checksum does not match";
     return false;
   }
+  *paths_digest = digest;
   *precomputed = CharacterStore::FilePart{static_cast<std::int64_t>(size - part_size),
                                           static_cast<std::int64_t>(part_size)};
   return true;
 }
 
-// A cache file opened for reading: a regular file only, never through a symbolic link, and without blocking
-// (a FIFO named like a cache file held the metadata pool's thread for good). Anything else is skipped with a
-// log line, and never removed.
+// A cache file opened for reading, once: a regular file only, never through a symbolic link, and without
+// blocking (a FIFO named like a cache file held the metadata pool's thread for good). Anything else is skipped
+// with a log line, and never removed. What is checked through it is what the rig then reads (file()): the name
+// is never opened again, so nothing renamed over it since (a FIFO that would block the build thread) is read.
 class CacheFileReader {
  public:
   explicit CacheFileReader(const std::string& path) {
@@ -200,20 +202,28 @@ class CacheFileReader {
       if (errno == ELOOP) spdlog::warn("cache file {} is a symbolic link: not read", path);
       return;
     }
+    auto file = std::make_shared<const OpenFile>(fd);
     struct stat status {};
     if (::fstat(fd, &status) != 0 || !S_ISREG(status.st_mode)) {
-      ::close(fd);
       spdlog::warn("{} is not a regular file: not read as a cache file, and left alone", path);
       return;
     }
     ::fcntl(fd, F_SETFL, ::fcntl(fd, F_GETFL) & ~O_NONBLOCK);
-    buffer_ = std::make_unique<__gnu_cxx::stdio_filebuf<char>>(fd, std::ios::in | std::ios::binary);  // owns fd
+    const int stream_fd = ::fcntl(fd, F_DUPFD_CLOEXEC, 0);  // the stream's own (it closes it); reads share the offset
+    if (stream_fd < 0) {
+      spdlog::warn("cache file {} not read: {}", path, std::strerror(errno));
+      return;
+    }
+    file_ = std::move(file);
+    buffer_ = std::make_unique<__gnu_cxx::stdio_filebuf<char>>(stream_fd, std::ios::in | std::ios::binary);
     stream_ = std::make_unique<std::istream>(buffer_.get());
   }
   explicit operator bool() const { return stream_ != nullptr; }
   std::istream& stream() { return *stream_; }
+  const std::shared_ptr<const OpenFile>& file() const { return file_; }
 
  private:
+  std::shared_ptr<const OpenFile> file_;
   std::unique_ptr<__gnu_cxx::stdio_filebuf<char>> buffer_;
   std::unique_ptr<std::istream> stream_;
 };
@@ -522,7 +532,8 @@ std::string CharacterStore::PathOf(const std::string& id) const {
 }
 
 std::optional<PrecomputedLocation> CharacterStore::WriteFile(const std::string& id, const std::string& payload,
-                                                             const PrecomputedWriter& precomputed) const {
+                                                             const PrecomputedWriter& precomputed, Written* written,
+                                                             const std::string& expected) {
   if (options_.directory.empty()) return std::nullopt;
   // Atomic: a uniquely named temporary file, flushed to disk, then renamed over the final name. Readers see
   // the whole file or none; a crash leaves at most a temporary file, which is never read, and which the next
@@ -533,13 +544,15 @@ std::optional<PrecomputedLocation> CharacterStore::WriteFile(const std::string& 
   int fd = -1;
   for (int attempt = 0; attempt < 3 && fd < 0; ++attempt) {
     temporary = fmt::format("{}.tmp.{}.{:016x}", path, ::getpid(), RandomSuffix());
-    fd = ::open(temporary.c_str(), O_WRONLY | O_CREAT | O_EXCL | O_NOFOLLOW | O_CLOEXEC, 0644);
+    // Read-write: the rig reads its paths back through this descriptor, never by the name.
+    fd = ::open(temporary.c_str(), O_RDWR | O_CREAT | O_EXCL | O_NOFOLLOW | O_CLOEXEC, 0644);
     if (fd < 0) {
       if (errno == EEXIST) continue;
       // The cache directory is an optimisation; serving goes on from memory, said and counted.
       ++write_failures_;
-      spdlog::warn("cache file {} not written: cannot create {} ({}); the character is served from memory only",
-                   path, temporary, std::strerror(errno));
+      const std::string why = fmt::format("cannot create {} ({})", temporary, std::strerror(errno));
+      spdlog::warn("cache file {} not written: {}; the character is served from memory only", path, why);
+      if (written != nullptr) written->failure = why;
       return std::nullopt;
     }
     // A starting replica may have opened the new file in the moment before the lock: it then holds the lock
@@ -552,7 +565,10 @@ std::optional<PrecomputedLocation> CharacterStore::WriteFile(const std::string& 
       fd = -1;
     }
   }
-  if (fd < 0) return std::nullopt;
+  if (fd < 0) {
+    if (written != nullptr) written->failure = "no temporary file could be made";
+    return std::nullopt;
+  }
   const std::uint64_t length = payload.size();
   std::string header(kFileMagic, sizeof(kFileMagic));
   header += Sha256(payload);
@@ -563,6 +579,7 @@ std::optional<PrecomputedLocation> CharacterStore::WriteFile(const std::string& 
   Sha256Stream sha;
   std::int64_t part_size = 0;
   std::string failure;
+  std::exception_ptr lost;  // the rig's own paths could not be read back (DataLossError): the caller's to handle
   bool ok = WriteAll(fd, header) && WriteAll(fd, payload) && WriteAll(fd, std::string(kDigestBytes, '\0'));
   try {
     ok = ok && precomputed([&](std::string_view piece) {
@@ -570,32 +587,66 @@ std::optional<PrecomputedLocation> CharacterStore::WriteFile(const std::string& 
       part_size += static_cast<std::int64_t>(piece.size());
       return WriteAll(fd, piece);
     });
+  } catch (const DataLossError& e) {
+    ok = false;
+    failure = e.what();
+    lost = std::current_exception();
   } catch (const std::exception& e) {
     ok = false;
     failure = e.what();
   }
   const std::string digest = ok ? sha.Final() : std::string();
+  if (ok && !expected.empty() && digest != expected) {
+    ok = false;
+    failure = "the rig's paths read back are not those it was built with: its file was changed in place";
+    lost = std::make_exception_ptr(DataLossError(failure));
+  }
   ok = ok && digest.size() == kDigestBytes &&
        ::pwrite(fd, digest.data(), kDigestBytes, static_cast<off_t>(digest_at)) ==
            static_cast<ssize_t>(kDigestBytes) &&
        ::fsync(fd) == 0;
   if (!ok || std::rename(temporary.c_str(), path.c_str()) != 0) {
     ++write_failures_;
-    spdlog::warn("cache file {} not written ({}); the character is served from memory only", path,
-                 failure.empty() ? std::strerror(errno) : failure);
+    if (failure.empty()) failure = std::strerror(errno);
+    spdlog::warn("cache file {} not written ({}); the character is served from memory only", path, failure);
+    if (written != nullptr) written->failure = failure;
     ::unlink(temporary.c_str());
     ::close(fd);
+    if (lost) std::rethrow_exception(lost);
     return std::nullopt;
   }
-  ::close(fd);  // releases the lock, after the rename
-  return PrecomputedLocation{path, digest_at + static_cast<std::int64_t>(kDigestBytes), part_size};
+  ::flock(fd, LOCK_UN);  // after the rename; the descriptor stays open for the rig to read its paths through
+  if (written != nullptr) written->paths_digest = digest;
+  Remember(id, fd);
+  return PrecomputedLocation{path, digest_at + static_cast<std::int64_t>(kDigestBytes), part_size,
+                             std::make_shared<const OpenFile>(fd)};
 }
 
 std::optional<PrecomputedLocation> CharacterStore::WriteFile(const std::string& id, const std::string& payload,
-                                                             const Rig& rig) const {
-  return WriteFile(id, payload, [&rig](const std::function<bool(std::string_view)>& write) {
-    return rig.WritePrecomputed(write);
-  });
+                                                             const Rig& rig, Written* written,
+                                                             const std::string& expected) {
+  return WriteFile(
+      id, payload, [&rig](const std::function<bool(std::string_view)>& write) { return rig.WritePrecomputed(write); },
+      written, expected);
+}
+
+void CharacterStore::Remember(const std::string& id, int fd) {
+  struct stat status {};
+  const bool known = ::fstat(fd, &status) == 0;
+  std::lock_guard lock(mutex_);
+  if (known) {
+    verified_[id] = FileStamp::Of(status);
+  } else {
+    verified_.erase(id);
+  }
+}
+
+bool CharacterStore::Verified(const std::string& id) {
+  struct stat status {};
+  if (::lstat(PathOf(id).c_str(), &status) != 0 || !S_ISREG(status.st_mode)) return false;
+  std::lock_guard lock(mutex_);
+  const auto it = verified_.find(id);
+  return it != verified_.end() && it->second == FileStamp::Of(status);
 }
 
 CharacterStore::Cleanup CharacterStore::RemoveStaleTemporaries() {
@@ -638,7 +689,7 @@ std::optional<CharacterStore::CacheFile> CharacterStore::ReadFile(const std::str
   std::istream& in = reader.stream();
   CacheFile file;
   std::string why;
-  bool ok = ReadCacheFile(in, &file.payload, &file.precomputed, &why);
+  bool ok = ReadCacheFile(in, &file.payload, &file.precomputed, &file.paths_digest, &why);
   if (ok) {
     try {
       file.data = Deserialize(file.payload);
@@ -663,10 +714,12 @@ std::optional<CharacterStore::CacheFile> CharacterStore::ReadFile(const std::str
                  removed ? "removed" : "could not be removed");
     return std::nullopt;
   }
+  file.opened = reader.file();
+  Remember(id, file.opened->fd());
   return file;
 }
 
-std::shared_ptr<const CharacterStore::Entry> CharacterStore::Build(const std::string& id, const CharacterData& data,
+std::shared_ptr<CharacterStore::Entry> CharacterStore::Build(const std::string& id, const CharacterData& data,
                                                                    const RigBuildControl& control) {
   {
     std::lock_guard lock(mutex_);
@@ -736,14 +789,17 @@ std::shared_ptr<const CharacterStore::Entry> CharacterStore::Rebuild(const std::
   if (file.precomputed) {
     // The paths stay in the file, read as frames need them: the character's memory does not grow with its
     // expressions. The file is replaced only by renaming, so the one opened keeps what was checked.
-    control.precomputed_file = PrecomputedLocation{path, file.precomputed->offset, file.precomputed->size};
+    // Read through the descriptor the file was checked through: its name is never opened again.
+    control.precomputed_file =
+        PrecomputedLocation{path, file.precomputed->offset, file.precomputed->size, file.opened};
   }
   // Paths solved here (an older file's, or ones that did not fit) are written at once and read from the file.
   bool written = false;
+  Written write;
   control.spool_directory = options_.directory;
   control.persist = [&](const PrecomputedWriter& bytes) {
     written = true;
-    return WriteFile(id, file.payload, bytes);
+    return WriteFile(id, file.payload, bytes, &write);
   };
   auto entry = Build(id, file.data, control);
   const RigSummary& summary = entry->rig->summary();
@@ -755,7 +811,8 @@ std::shared_ptr<const CharacterStore::Entry> CharacterStore::Rebuild(const std::
                : file.data.options.target_paths ? fmt::format("solved ({:.0f} ms)", summary.path_ms)
                                                  : std::string("off"));
   // Written once, so the next restart (or another replica) loads what this one had to solve.
-  if ((!file.precomputed || unused) && !written) WriteFile(id, file.payload, *entry->rig);
+  if ((!file.precomputed || unused) && !written) WriteFile(id, file.payload, *entry->rig, &write);
+  entry->paths_digest = summary.paths_loaded ? file.paths_digest : write.paths_digest;
   std::lock_guard lock(mutex_);
   if (summary.paths_loaded) ++stats_.paths_loaded;
   if (!file.precomputed || unused) ++stats_.upgraded_files;
@@ -803,7 +860,50 @@ CharacterStore::Found CharacterStore::Find(const std::string& id, bool rebuild, 
 
 CharacterStore::Found CharacterStore::Start(CharacterData data, Wants wants) {
   const std::string id = ContentId(data);
-  return Lookup(id, &data, true, std::move(wants));
+  Found found = Lookup(id, &data, true, wants);  // `data` is taken only when a build starts
+  // A character in memory is answered with its cache file whole: another replica sharing the directory may have
+  // deleted it, or someone damaged it, since this one wrote it. A rig that cannot give its paths back as they
+  // were is dropped, and built anew.
+  if (found.entry && !KeepFile(found.entry, data)) found = Lookup(id, &data, true, std::move(wants));
+  return found;
+}
+
+bool CharacterStore::KeepFile(const std::shared_ptr<const Entry>& entry, const CharacterData& data) {
+  const std::string& id = entry->id;
+  if (options_.directory.empty() || Verified(id) || ReadFile(id)) return true;
+  // Missing, or corrupt (ReadFile removed it and said why): written anew from the rig in memory.
+  std::string why;
+  try {
+    if (WriteFile(id, Serialize(data), *entry->rig, nullptr, entry->paths_digest)) {
+      spdlog::warn("cache file {} was missing or damaged: written anew from the character in memory", PathOf(id));
+    }
+    return true;  // or could not be written (said and counted): served from memory, as after any failed write
+  } catch (const DataLossError& e) {
+    why = e.what();
+  }
+  Drop(entry, why);
+  return false;
+}
+
+bool CharacterStore::Drop(const std::shared_ptr<const Entry>& entry, const std::string& why) {
+  {
+    std::lock_guard lock(mutex_);
+    verified_.erase(entry->id);  // checked again before it is listed or read
+    const auto it = entries_.find(entry->id);
+    if (it == entries_.end() || it->second.entry != entry) return false;
+    Erase(it);
+  }
+  spdlog::warn("character {} '{}' dropped from memory: its rig is damaged ({}); the next upload, or the next call "
+               "that needs it, builds it anew",
+               entry->id.substr(0, 12), entry->name, why);
+  return true;
+}
+
+void CharacterStore::Erase(std::unordered_map<std::string, Slot>::iterator it) {
+  stats_.bytes -= it->second.entry->bytes;
+  lru_.erase(it->second.position);
+  entries_.erase(it);
+  stats_.characters = static_cast<std::int64_t>(entries_.size());
 }
 
 CharacterStore::Found CharacterStore::Lookup(const std::string& id, CharacterData* data, bool rebuild,
@@ -813,7 +913,7 @@ CharacterStore::Found CharacterStore::Lookup(const std::string& id, CharacterDat
     std::lock_guard lock(flight->mutex_);
     const auto at = flight->waiters_.insert(flight->waiters_.end(), std::move(wants));
     return Waiter(static_cast<void*>(flight.get()), [flight, at](void*) {
-      std::lock_guard lock(flight->mutex_);
+      std::lock_guard waiters(flight->mutex_);
       flight->waiters_.erase(at);
     });
   };
@@ -830,6 +930,7 @@ CharacterStore::Found CharacterStore::Lookup(const std::string& id, CharacterDat
   if (auto other = building_.find(id); other != building_.end()) {
     found.building = other->second;
     found.waiter = join(other->second);
+    found.joined = true;
     return found;
   }
   // The file is read (and checked) on the build thread: here only whether there is one.
@@ -880,6 +981,7 @@ void CharacterStore::RunBuild(const std::shared_ptr<PendingBuild>& flight,
   std::exception_ptr error;
   bool rebuilt = false;
   bool written = false;  // this upload's cache file
+  Written write;         // how it went
   try {
     if (control.stop()) throw Error(ErrorCode::kCancelled, "the rig build was cancelled");
     if (flight->progress_.from_file) {
@@ -895,10 +997,15 @@ void CharacterStore::RunBuild(const std::shared_ptr<PendingBuild>& flight,
       control.spool_directory = options_.directory;  // each path out of memory as soon as it is solved
       control.persist = [&](const PrecomputedWriter& bytes) {
         written = true;
-        return WriteFile(id, payload, bytes);
+        return WriteFile(id, payload, bytes, &write);
       };
-      entry = Build(id, *data, control);  // throws Error for bad meshes, or when stopped; nothing is stored then
-      if (!written) WriteFile(id, payload, *entry->rig);
+      auto built = Build(id, *data, control);  // throws Error for bad meshes, or when stopped; nothing is stored then
+      if (!written) WriteFile(id, payload, *built->rig, &write);
+      built->paths_digest = write.paths_digest;
+      if (!options_.directory.empty() && !write.failure.empty()) {
+        built->not_persisted = "its cache file could not be written (" + write.failure + ")";
+      }
+      entry = std::move(built);
     }
   } catch (...) {
     error = std::current_exception();
@@ -907,20 +1014,22 @@ void CharacterStore::RunBuild(const std::shared_ptr<PendingBuild>& flight,
   if (error && written && !rebuilt && !options_.directory.empty()) RemoveCacheFile(PathOf(id));
   const bool cancelled = error && IsCancelled(error);
   if (cancelled) spdlog::info("the build of {} was stopped: nothing kept", id.substr(0, 12));
-  bool deleted = false;
   {
     std::lock_guard lock(mutex_);
     if (auto it = building_.find(id); it != building_.end() && it->second == flight) building_.erase(it);
-    deleted = flight->deleted_;
     if (cancelled) ++stats_.cancelled_builds;
-    if (entry && !deleted) {
+    if (entry && !flight->deleted_) {
       if (rebuilt) ++stats_.rebuilds_from_disk;
       Insert(entry);
     }
+    // A delete that came while this built has removed the file already, or found none: this build wrote it
+    // afterwards, and it goes, unless an upload since (a build of its own, or its result) owns the file now.
+    // Under the lock: such a build registers (in building_) before it writes anything.
+    if (flight->deleted_ && !options_.directory.empty() && building_.count(id) == 0 && entries_.count(id) == 0) {
+      verified_.erase(id);
+      RemoveCacheFile(PathOf(id));
+    }
   }
-  // A delete that came while this built has removed the file already, or finds none: this build wrote it
-  // afterwards. Either way it goes.
-  if (deleted && !options_.directory.empty()) RemoveCacheFile(PathOf(id));
   flight->End(std::move(entry), error);
   ReturnFreeHeap();  // the build's working memory, whether it succeeded or not
 }
@@ -946,22 +1055,9 @@ std::vector<CharacterStore::Listed> CharacterStore::List() {
   for (const auto& file : std::filesystem::directory_iterator(options_.directory, ec)) {
     const std::string id = file.path().stem().string();
     if (file.path().extension() != ".sbchar" || !ValidId(id) || seen.count(id) != 0) continue;
-    std::error_code stat_error;
-    const FileStamp stamp{file.file_size(stat_error), file.last_write_time(stat_error)};
-    if (stat_error) continue;
-    bool checked = false;
-    {
-      std::lock_guard lock(mutex_);
-      const auto it = verified_.find(id);
-      checked = it != verified_.end() && it->second.size == stamp.size && it->second.modified == stamp.modified;
-    }
-    if (!checked) {
-      // Checked in full once per file version, so a corrupt file is removed (and logged) here rather than
-      // listed until someone asks for it.
-      if (!ReadFile(id)) continue;
-      std::lock_guard lock(mutex_);
-      verified_[id] = stamp;
-    }
+    // Checked in full once per file version, so a corrupt file is removed (and logged) here rather than
+    // listed until someone asks for it.
+    if (!Verified(id) && !ReadFile(id)) continue;
     // The name is the payload's first field: read just the header, not the meshes.
     CacheFileReader reader(file.path().string());
     if (!reader) continue;
@@ -987,15 +1083,14 @@ bool CharacterStore::Delete(const std::string& id) {
     std::lock_guard lock(mutex_);
     verified_.erase(id);
     if (auto flight = building_.find(id); flight != building_.end()) {
+      // Finished for its callers, but not kept; and out of building_ now, so an upload that comes after this
+      // delete starts a build of its own rather than join this one (and end without its character).
       flight->second->deleted_ = true;
+      building_.erase(flight);
       found = true;
     }
-    auto it = entries_.find(id);
-    if (it != entries_.end()) {
-      stats_.bytes -= it->second.entry->bytes;
-      lru_.erase(it->second.position);
-      entries_.erase(it);
-      stats_.characters = static_cast<std::int64_t>(entries_.size());
+    if (auto it = entries_.find(id); it != entries_.end()) {
+      Erase(it);
       found = true;
     }
   }

@@ -9,6 +9,8 @@
 // SHA-256(payload) | payload) still loads; its paths are solved and the file is rewritten as version 2.
 #pragma once
 
+#include <sys/stat.h>
+
 #include <atomic>
 #include <chrono>
 #include <exception>
@@ -97,6 +99,12 @@ class CharacterStore {
     std::string name;
     std::shared_ptr<const Rig> rig;
     std::int64_t bytes = 0;
+    // SHA-256 of the rig's precomputed paths as they were written to, or loaded from, its cache file; empty when
+    // they were not. A cache file written anew from the rig must give the same (else the rig is damaged).
+    std::string paths_digest;
+    // Why its upload's cache file could not be written (a read-only or full directory, no descriptor left): it is
+    // served from memory only, unknown to a restart or another replica. Empty when written, or memory only.
+    std::string not_persisted;
   };
 
   explicit CharacterStore(StoreOptions options);
@@ -118,6 +126,7 @@ class CharacterStore {
     Waiter waiter;
     bool stored = false;  // Find without rebuild: only in the cache directory
     bool known = true;    // Start: it was in memory, being built or in the cache directory already
+    bool joined = false;  // `building` was already in flight (another caller's), not started for this one
   };
   // Never waits for a build. In memory: the entry. Being built: that build. Only in the cache directory: a
   // rebuild started (`rebuild`), or `stored`. Unknown anywhere: nothing. Throws LimitError when a rebuild is
@@ -146,6 +155,10 @@ class CharacterStore {
   // Removes the character from memory and the directory. A build of it in flight (an upload, or a rebuild
   // from the cache file) finishes for its callers but is not kept: the delete wins.
   bool Delete(const std::string& id);
+  // The entry's rig is damaged (its paths could not be read back from its cache file: DataLossError): it leaves
+  // memory, so the next call that needs the character rebuilds it (from its file when that is whole) and the next
+  // upload builds it anew; the file is checked again before it is listed. False when it was not in memory.
+  bool Drop(const std::shared_ptr<const Entry>& entry, const std::string& why);
   StoreStats stats() const;
 
   // Removes the temporary files writers killed mid-write (kill -9, OOM, power loss) left in the cache
@@ -166,8 +179,10 @@ class CharacterStore {
     std::string payload;
     CharacterData data;  // the payload read
     std::optional<FilePart> precomputed;  // where the file's precomputed paths are (checked); none in version 1
+    std::string paths_digest;             // their SHA-256, as checked
+    std::shared_ptr<const OpenFile> opened;  // the file checked, for the rig to read its paths through
   };
-  std::shared_ptr<const Entry> Build(const std::string& id, const CharacterData& data, const RigBuildControl& control);
+  std::shared_ptr<Entry> Build(const std::string& id, const CharacterData& data, const RigBuildControl& control);
   // The rig of a cache file, its paths loaded when the file has them; rewrites a file whose paths were
   // missing or did not fit.
   std::shared_ptr<const Entry> Rebuild(const std::string& id, const CacheFile& file, const RigBuildControl& control);
@@ -183,12 +198,27 @@ class CharacterStore {
   std::string PathOf(const std::string& id) const;
   // Where the precomputed part landed (for the rig to read its samples from), nullopt when not written.
   // The precomputed part is told by `precomputed` in pieces (a rig's WritePrecomputed), never held together.
+  // What a write gave: the SHA-256 of the precomputed part written, or why nothing was.
+  struct Written {
+    std::string paths_digest;
+    std::string failure;
+  };
+  // `written` (when given) says how it went. Throws DataLossError (nothing written) when the rig's own paths
+  // cannot be read back from the file they were left in, or (`expected` given) are not those it was built with.
   std::optional<PrecomputedLocation> WriteFile(const std::string& id, const std::string& payload,
-                                               const PrecomputedWriter& precomputed) const;
-  std::optional<PrecomputedLocation> WriteFile(const std::string& id, const std::string& payload,
-                                               const Rig& rig) const;
+                                               const PrecomputedWriter& precomputed, Written* written = nullptr,
+                                               const std::string& expected = {});
+  std::optional<PrecomputedLocation> WriteFile(const std::string& id, const std::string& payload, const Rig& rig,
+                                               Written* written = nullptr, const std::string& expected = {});
+  // An upload's character found in memory: true once its cache file is whole (checked, or written anew from the
+  // rig); false when the rig could not give back the paths it was built with (then it is dropped).
+  bool KeepFile(const std::shared_ptr<const Entry>& entry, const CharacterData& data);
   // The checked parts of the cache file; nullopt when there is none, or it is corrupt (then it is removed).
   std::optional<CacheFile> ReadFile(const std::string& id);
+  // The cache file open as `fd` is whole (just checked, or written): Verified says so until it changes.
+  void Remember(const std::string& id, int fd);
+  // Whether the cache file is the one last checked or written, unchanged since.
+  bool Verified(const std::string& id);
 
   StoreOptions options_;
   mutable std::mutex mutex_;
@@ -198,14 +228,23 @@ class CharacterStore {
     std::list<std::string>::iterator position;
   };
   std::unordered_map<std::string, Slot> entries_;
+  void Erase(std::unordered_map<std::string, Slot>::iterator it);  // out of memory; the caller holds mutex_
   std::unordered_map<std::string, std::shared_ptr<PendingBuild>> building_;
+  // A file's identity and version: its inode, size and modification time.
   struct FileStamp {
-    std::uintmax_t size = 0;
-    std::filesystem::file_time_type modified;
+    std::uint64_t device = 0, inode = 0;
+    std::int64_t size = 0, seconds = 0, nanoseconds = 0;
+    static FileStamp Of(const struct stat& status) {
+      return {static_cast<std::uint64_t>(status.st_dev), static_cast<std::uint64_t>(status.st_ino),
+              static_cast<std::int64_t>(status.st_size), static_cast<std::int64_t>(status.st_mtim.tv_sec),
+              static_cast<std::int64_t>(status.st_mtim.tv_nsec)};
+    }
+    bool operator==(const FileStamp&) const = default;
   };
-  std::unordered_map<std::string, FileStamp> verified_;  // cache files List has checked
+  // Cache files checked in full (checksums and id) since they last changed: read, or written, by this store.
+  std::unordered_map<std::string, FileStamp> verified_;
   StoreStats stats_;
-  mutable std::atomic<std::int64_t> write_failures_{0};  // StoreStats::write_failures (WriteFile is const)
+  std::atomic<std::int64_t> write_failures_{0};  // StoreStats::write_failures (counted without the lock)
   std::unique_ptr<SolverPool> builds_;  // last: its threads end before the rest goes
 };
 

@@ -427,6 +427,10 @@ v1::Character ToProto(const CharacterStore::Entry& entry, bool cache_hit) {
   out->set_boundary_mode(ToString(s.boundary_mode));
   out->set_precompute_ms(s.precompute_ms);
   for (const auto& n : s.notes) out->add_notes(n);
+  if (!entry.not_persisted.empty()) {
+    out->add_notes("not persisted: " + entry.not_persisted +
+                   "; served from this server's memory only, unknown to a restart or another replica");
+  }
   out->set_rim_vertices(static_cast<std::uint32_t>(s.rim_vertices));
   out->set_paths_loaded(s.paths_loaded);
   out->set_path_samples(s.path_samples);

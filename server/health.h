@@ -6,11 +6,18 @@
 
 #include <grpcpp/generic/async_generic_service.h>
 #include <grpcpp/server.h>
+#include <grpcpp/support/server_interceptor.h>
 
 #include <memory>
 #include <string>
 
 namespace springblend::server {
+
+// Health's Watch streams need no token (probes use them), but each holds a call open for as long as its client
+// likes (2,000 held 36 MiB): at most this many at once per server; one more is refused at once with
+// RESOURCE_EXHAUSTED. Check calls are never limited.
+inline constexpr int kMaxHealthWatches = 100;
+std::unique_ptr<grpc::experimental::ServerInterceptorFactoryInterface> MakeWatchLimit(int limit = kMaxHealthWatches);
 
 class HealthEndpoint {
  public:

@@ -336,7 +336,7 @@ class InteractiveReactor final : public grpc::ServerBidiReactor<grpc::ByteBuffer
                         job.index};
       }
     } catch (const std::exception& e) {
-      status = ToStatus(e);
+      status = FrameStatus(e, entry_, context_);
     }
     lock.lock();
     solving_ = false;
@@ -374,7 +374,7 @@ class InteractiveReactor final : public grpc::ServerBidiReactor<grpc::ByteBuffer
       preview.mutable_summary()->set_termination("preview");
       answer = Answer{Serialize(preview), job.index};
     } catch (const std::exception& e) {
-      status = ToStatus(e);
+      status = FrameStatus(e, entry_, context_);
     }
     lock.lock();
     previewing_ = false;

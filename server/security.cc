@@ -56,9 +56,14 @@ std::shared_ptr<grpc::ServerCredentials> MakeServerCredentials(const TlsOptions&
   return grpc::SslServerCredentials(ssl);
 }
 
-void TokenAuthenticator::Add(const std::string& token, Role role) {
+void TokenAuthenticator::Add(const std::string& token, Role role, const std::string& where) {
   if (token.empty()) throw Error(ErrorCode::kInvalidInput, "--token: a token may not be empty");
-  tokens_[Sha256(token)] = role;
+  // A token given twice would keep whichever role came last (a --token full token silently solve-only).
+  const auto [at, added] = tokens_.emplace(Sha256(token), Token{role, where});
+  if (!added) {
+    throw Error(ErrorCode::kInvalidInput, where + ": the token of " + at->second.where +
+                                              " again: refusing to start (each token once, with one role)");
+  }
 }
 
 void TokenAuthenticator::AddFile(const std::string& path) {
@@ -77,9 +82,9 @@ void TokenAuthenticator::AddFile(const std::string& path) {
     }
     ++found;
     if (role == "full") {
-      Add(token, Role::kFull);
+      Add(token, Role::kFull, where);
     } else if (role == "solve") {
-      Add(token, Role::kSolve);
+      Add(token, Role::kSolve, where);
     } else {
       throw Error(ErrorCode::kInvalidInput, where + ": unknown role '" + role + "' (full or solve)");
     }
@@ -114,7 +119,7 @@ AuthVerdict TokenAuthenticator::Check(const std::multimap<grpc::string_ref, grpc
   if (!bearer) return {Kind::kMissing, "the authorization header must read 'Bearer TOKEN'"};
   const auto known = tokens_.find(Sha256(value.substr(kBearer.size())));
   if (known == tokens_.end()) return {Kind::kUnknown, "the token is not one this server accepts"};
-  if (needed == Access::kWrite && known->second != Role::kFull) {
+  if (needed == Access::kWrite && known->second.role != Role::kFull) {
     return {Kind::kForbidden, std::string("this token may not ") + Describe(needed) + "; it needs the full role"};
   }
   return {};

@@ -46,7 +46,9 @@ class TokenAuthenticator {
  public:
   // No tokens: every call is allowed (the server is open, as on a trusted network).
   TokenAuthenticator() = default;
-  void Add(const std::string& token, Role role);
+  // `where` names the token's origin in messages (the flag, or the file and line). Throws Error(kInvalidInput)
+  // naming both origins when the token was added before.
+  void Add(const std::string& token, Role role, const std::string& where = "--token");
   // Reads a tokens file: one "ROLE TOKEN" per line (ROLE is full or solve); blank lines and lines starting
   // with # are skipped. Throws Error(kInvalidInput) naming the file and line.
   void AddFile(const std::string& path);
@@ -58,7 +60,11 @@ class TokenAuthenticator {
 
  private:
   // Keyed by the token's SHA-256, so neither the map's order nor the comparison leaks the token itself.
-  std::map<std::string, Role> tokens_;
+  struct Token {
+    Role role;
+    std::string where;  // its origin, for the message when it comes again
+  };
+  std::map<std::string, Token> tokens_;
 };
 
 // Server reflection is gRPC's service, not ours, so its calls pass through no handler of ours: this interceptor

@@ -167,6 +167,7 @@ std::unique_ptr<Server> Server::Create(ServerOptions options) {
   builder.AddChannelArgument(GRPC_ARG_ALLOW_REUSEPORT, 0);
   std::vector<std::unique_ptr<grpc::experimental::ServerInterceptorFactoryInterface>> interceptors;
   interceptors.push_back(MakeReflectionGuard(state->auth));
+  interceptors.push_back(MakeWatchLimit());
   builder.experimental().SetInterceptorCreators(std::move(interceptors));
   state->server = builder.BuildAndStart();
   if (!state->server) {

@@ -190,7 +190,7 @@ class SolveReactor final : public grpc::ServerWriteReactor<grpc::ByteBuffer> {
                                     job_.with_normals, context_.replica_name));
         }
       } catch (const std::exception& e) {
-        error = ToStatus(e);
+        error = FrameStatus(e, entry_, context_);
       }
     }
     std::unique_lock lock(mutex_);

@@ -87,8 +87,12 @@ class UploadReactor final : public grpc::ServerReadReactor<grpc::ByteBuffer> {
         info_.character = found.building->id();
       }
       spdlog::info("upload {} '{}': {} (request_id={})", found.building->id().substr(0, 12),
-                   Printable(found.building->name()), found.known ? "rebuilding from the cache directory" : "building",
+                   Printable(found.building->name()),
+                   found.joined  ? "joins the build already in flight"
+                   : found.known ? "rebuilding from the cache directory"
+                                 : "building",
                    info_.request_id);
+      joined_ = found.joined;
       call_->AddInitialMetadata(kCharacterIdHeader, found.building->id());
       StartSendInitialMetadata();
       const bool known = found.known;
@@ -122,7 +126,14 @@ class UploadReactor final : public grpc::ServerReadReactor<grpc::ByteBuffer> {
   // The build's end (on its thread, or on the pool when there was none to wait for).
   void Built(const std::shared_ptr<const CharacterStore::Entry>& entry, std::exception_ptr error, bool known) {
     grpc::Status status;
-    if (error) {
+    if (call_->IsCancelled() || CallExpired(*call_)) {
+      // Its client gave up while it was built: logged and counted as what that client saw, not as an OK.
+      status = CallExpired(*call_) ? DeadlineExceeded("the deadline passed while the character was being built")
+                                   : Cancelled("the call was cancelled while the character was being built");
+      spdlog::info("upload {}: {} ({}; request_id={})", entry ? entry->id.substr(0, 12) : std::string("refused"),
+                   status.error_message(), entry ? "the character is kept" : "the build ended without it",
+                   info_.request_id);
+    } else if (error) {
       status = BuildStatus(error, call_, context_);
       spdlog::warn("upload refused: {} (request_id={})", Printable(status.error_message(), 400), info_.request_id);
     } else if (!entry) {
@@ -131,7 +142,8 @@ class UploadReactor final : public grpc::ServerReadReactor<grpc::ByteBuffer> {
     } else {
       *response_ = Serialize(ToProto(*entry, known));
       spdlog::info("upload {} '{}': {} ({} vertices, {} springs, {:.0f} ms; request_id={})", entry->id.substr(0, 12),
-                   Printable(entry->name), known ? "cache hit" : "built", entry->rig->num_vertices(),
+                   Printable(entry->name), joined_ ? "built (joined the build already in flight)" : known ? "cache hit" : "built",
+                   entry->rig->num_vertices(),
                    entry->rig->num_springs(), entry->rig->summary().precompute_ms, info_.request_id);
     }
     std::unique_lock lock(mutex_);
@@ -159,6 +171,7 @@ class UploadReactor final : public grpc::ServerReadReactor<grpc::ByteBuffer> {
   std::mutex mutex_;
   CharacterStore::Waiter waiter_;  // while the build runs
   bool sending_metadata_ = false;
+  bool joined_ = false;  // waited for a build another call started
   std::optional<grpc::Status> due_;  // the build ended with it
 };
 

@@ -2,10 +2,12 @@
 
 #include <fmt/format.h>
 
+#include <algorithm>
 #include <charconv>
 #include <cmath>
 #include <filesystem>
 #include <fstream>
+#include <map>
 #include <nlohmann/json.hpp>
 #include <set>
 #include <sstream>
@@ -158,6 +160,7 @@ RigFile LoadRigFile(const std::string& path) {
   }
   const json& targets = Array(doc["targets"], path + ": targets");
   if (targets.empty()) Invalid(path + ": targets is empty: a rig needs at least one target");
+  std::map<std::vector<std::string>, std::string> combinations;  // sorted drivers -> the first target with them
   for (size_t t = 0; t < targets.size(); ++t) {
     const json& in = targets[t];
     std::string where = fmt::format("{}: targets[{}]", path, t);
@@ -165,6 +168,11 @@ RigFile LoadRigFile(const std::string& path) {
     RigTarget target;
     const std::string name = String(in["name"], where + ".name");
     if (name.empty()) Invalid(where + ".name is empty");
+    // Weights are given by name as NAME=WEIGHT,NAME=WEIGHT: a name with either character cannot be addressed.
+    if (const size_t at = name.find_first_of("=,"); at != std::string::npos) {
+      Invalid(fmt::format("{}.name '{}' contains '{}': weights given by name (NAME=WEIGHT,...) could not address it",
+                          where, name, name[at]));
+    }
     where = fmt::format("{}: target '{}'", path, name);
     target.mesh = Mesh(in["mesh"], base, where + ": mesh");
     target.mesh.name = name;
@@ -187,6 +195,15 @@ RigFile LoadRigFile(const std::string& path) {
         target.combination.push_back(String(list[i], fmt::format("{}: combination[{}]", where, i)));
       }
       if (target.combination.empty()) Invalid(where + ": combination is empty (name at least two targets)");
+      // a*b and b*a are one product of weights: two correctives on it would both switch on together.
+      std::vector<std::string> drivers = target.combination;
+      std::sort(drivers.begin(), drivers.end());
+      const auto [first, added] = combinations.emplace(drivers, name);
+      if (!added) {
+        Invalid(fmt::format("{}: combination has the drivers of target '{}' (in any order, the same product of "
+                            "weights): one combination per set of drivers",
+                            where, first->second));
+      }
     }
     rig.targets.push_back(std::move(target));
   }

@@ -14,6 +14,7 @@
 #include <vector>
 
 #include "springblend/error.h"
+#include "springblend/rig.h"
 
 namespace springblend::internal {
 namespace {
@@ -24,14 +25,16 @@ constexpr double kLowMax = 2147483647.0;
 
 }  // namespace
 
-std::shared_ptr<const PathFile> PathFile::Open(const std::string& path) {
-  const int fd = ::open(path.c_str(), O_RDONLY | O_CLOEXEC);
+std::shared_ptr<const PathFile> PathFile::Open(const std::string& path, int opened) {
+  const int fd = opened >= 0 ? ::fcntl(opened, F_DUPFD_CLOEXEC, 0)
+                             : ::open(path.c_str(), O_RDONLY | O_NONBLOCK | O_CLOEXEC);
   if (fd < 0) throw Error(ErrorCode::kInvalidInput, fmt::format("cannot open '{}': {}", path, std::strerror(errno)));
   struct stat st {};
   if (::fstat(fd, &st) != 0 || !S_ISREG(st.st_mode)) {
     ::close(fd);
     throw Error(ErrorCode::kInvalidInput, fmt::format("'{}' is not a regular file", path));
   }
+  // Reads are preads of a regular file: O_NONBLOCK (which only kept the open from waiting) changes nothing.
   return std::shared_ptr<const PathFile>(new PathFile(fd, path, static_cast<std::int64_t>(st.st_size)));
 }
 
@@ -82,7 +85,7 @@ void PathFile::Read(std::int64_t offset, size_t n, void* out) const {
     const ssize_t got = ::pread(fd_, bytes + done, n - done, static_cast<off_t>(offset + done));
     if (got < 0 && errno == EINTR) continue;
     if (got <= 0) {
-      throw Error(ErrorCode::kInternal,
+      throw DataLossError(
                   fmt::format("target paths file '{}': cannot read {} bytes at {} ({})", path_, n - done,
                               offset + static_cast<std::int64_t>(done),
                               got < 0 ? std::strerror(errno) : "the file was cut short after it was opened"));
@@ -221,3 +224,11 @@ bool PathField::Parse(const std::string& in, size_t* at, Eigen::Index rows, Path
 }
 
 }  // namespace springblend::internal
+
+namespace springblend {
+
+OpenFile::~OpenFile() {
+  if (fd_ >= 0) ::close(fd_);
+}
+
+}  // namespace springblend

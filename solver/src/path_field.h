@@ -28,8 +28,10 @@ namespace springblend::internal {
 // (the server's cache replaces files by renaming, so an open one keeps its contents).
 class PathFile {
  public:
-  // Throws Error(kInvalidInput) naming the file when it cannot be opened.
-  static std::shared_ptr<const PathFile> Open(const std::string& path);
+  // Throws Error(kInvalidInput) naming the file when it cannot be opened or is not a regular file. With
+  // `opened`, a duplicate of that descriptor is read (`path` only names it); without, `path` is opened without
+  // blocking (a FIFO there is refused, never waited on).
+  static std::shared_ptr<const PathFile> Open(const std::string& path, int opened = -1);
   // A new file without a name in `directory` (O_TMPFILE, or a file unlinked at once where the file system has
   // none), empty, for a build to leave its paths' words in as each is solved (Append): its disk space is given
   // back when the last field that reads it is gone. Throws Error(kInvalidInput) naming the directory when it
@@ -41,8 +43,8 @@ class PathFile {
 
   const std::string& path() const { return path_; }
   std::int64_t size() const { return size_.load(); }
-  // n bytes at `offset` into out; throws Error(kInternal) naming the file and the offset when they cannot be read
-  // (a file cut short after it was opened).
+  // n bytes at `offset` into out; throws DataLossError (kInternal) naming the file and the offset when they cannot
+  // be read (a file cut short after it was opened).
   void Read(std::int64_t offset, size_t n, void* out) const;
   // Writes `bytes` at the end of a spool (thread-safe) and returns their offset; throws Error(kInternal) naming
   // the directory when they cannot all be written (a full disk), the file's size then unchanged.

@@ -187,7 +187,7 @@ std::shared_ptr<const Rig> RigBuilder::Build(TriangleMesh rest, std::vector<Targ
     // The paths at a file's location, their samples left there; nullopt and why when they are not this rig's.
     const auto parse_file = [&](const PrecomputedLocation& at, std::string* why_not) {
       try {
-        return internal::ParseTargetPaths(internal::PathFile::Open(at.file), at.offset, at.size, rig->num_targets(),
+        return internal::ParseTargetPaths(internal::PathFile::Open(at.file, at.opened ? at.opened->fd() : -1), at.offset, at.size, rig->num_targets(),
                                           s.vertices, why_not);
       } catch (const Error& e) {
         *why_not = e.what();

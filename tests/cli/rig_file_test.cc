@@ -120,6 +120,18 @@ std::vector<BadRig> JsonLevelCases() {
       {"mask file with a bad line",
        [](auto& r, const TempDir& dir) { r["targets"][1]["mask"] = dir.Write("bad.txt", "1\n0\nx1\n"); },
        {"target 'twist': mask", "bad.txt: line 3: 'x1' is not a number"}},
+      {"a target name with '='", [](auto& r, auto&) { r["targets"][1]["name"] = "twist=1"; },
+       {"targets[1].name 'twist=1' contains '='", "could not address it"}},
+      {"a target name with ','", [](auto& r, auto&) { r["targets"][0]["name"] = "bend,left"; },
+       {"targets[0].name 'bend,left' contains ','"}},
+      {"two combinations of the same drivers",
+       [](auto& r, auto&) {
+         nlohmann::json again = r["targets"][2];
+         again["name"] = "twist_bend";
+         again["combination"] = {"twist", "bend"};
+         r["targets"].push_back(again);
+       },
+       {"target 'twist_bend': combination has the drivers of target 'bend_twist'"}},
       {"a mesh that does not parse",
        [](auto& r, const TempDir& dir) { r["targets"][1]["mesh"] = dir.Write("broken.obj", "v 0 0 0\nf 1 2 3\n"); },
        {"target 'twist': mesh", "broken.obj"}},

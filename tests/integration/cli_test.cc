@@ -427,6 +427,9 @@ struct BadCall {
   std::vector<std::string> message_parts;
 };
 
+// Readable in ctest's output (gtest prints a parameter without PrintTo as raw bytes).
+void PrintTo(const BadCall& c, std::ostream* os) { *os << std::string(c.name) + ": springblend " + c.arguments; }
+
 class CliRefuses : public ::testing::TestWithParam<BadCall> {};
 
 TEST_P(CliRefuses, WithExitCodeTwoAndAMessageNamingTheProblem) {

@@ -31,30 +31,11 @@ namespace {
 using ::testing::HasSubstr;
 using ::testing::Not;
 using testing::CylinderRig;
+using testing::RunServer;
 using testing::ServerProcess;
+using testing::ServerRun;
 using testing::SweepRequest;
 using testing::TempDir;
-
-struct ServerRun {
-  int exit_code = -1;
-  std::string output;  // stdout and stderr
-};
-
-// Runs springblend-server with these arguments; one that starts is stopped by `timeout` (exit code 124).
-ServerRun RunServer(const TempDir& dir, const std::vector<std::string>& arguments) {
-  std::string command = "timeout 10 " + std::string(SPRINGBLEND_SERVER) + " --cache-dir " + dir.File("cache");
-  for (const auto& a : arguments) command += " '" + a + "'";
-  command += " 2>&1 </dev/null";
-  ServerRun run;
-  FILE* pipe = popen(command.c_str(), "r");
-  if (pipe == nullptr) return run;
-  std::array<char, 4096> buffer;
-  size_t n;
-  while ((n = fread(buffer.data(), 1, buffer.size(), pipe)) > 0) run.output.append(buffer.data(), n);
-  const int status = pclose(pipe);
-  run.exit_code = WIFEXITED(status) ? WEXITSTATUS(status) : -1;
-  return run;
-}
 
 // A loopback port free at the time of asking.
 int FreePort() {
@@ -613,6 +594,10 @@ TEST(CacheFiles, AReadOnlyCacheDirectoryIsSaidAndCounted) {
   v1::BuildOptions options;
   options.set_no_target_paths(true);
   const v1::Character character = client.Upload(cylinder.rest, cylinder.targets, options, "cylinder");
+  // Hardening IV (items 6 and 14): the upload's answer, and the character's description, say it was not kept.
+  EXPECT_THAT(::testing::PrintToString(character.summary().notes()), HasSubstr("not persisted: its cache file"));
+  EXPECT_THAT(::testing::PrintToString(client.Get(character.id()).summary().notes()),
+              HasSubstr("served from this server's memory only"));
   EXPECT_EQ(client.Solve(SweepRequest(character.id(), 2, {0.5, 0.5}), [](const v1::SolvedFrame&) {}), 2);
   EXPECT_GE(Metric(server.metrics_port(), "springblend_cache_write_failures_total"), 1);
   EXPECT_THAT(ReadLog(log), HasSubstr("not written"));

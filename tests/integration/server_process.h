@@ -11,6 +11,8 @@
 #include <sys/wait.h>
 #include <unistd.h>
 
+#include <array>
+#include <cstdio>
 #include <functional>
 #include <string>
 #include <vector>
@@ -97,6 +99,27 @@ class ServerProcess {
   std::string health_address_;
   int metrics_port_ = 0;
 };
+
+struct ServerRun {
+  int exit_code = -1;
+  std::string output;  // stdout and stderr
+};
+
+// Runs springblend-server with these arguments; one that starts is stopped by `timeout` (exit code 124).
+inline ServerRun RunServer(const TempDir& dir, const std::vector<std::string>& arguments) {
+  std::string command = "timeout 10 " + std::string(SPRINGBLEND_SERVER) + " --cache-dir " + dir.File("cache");
+  for (const auto& a : arguments) command += " '" + a + "'";
+  command += " 2>&1 </dev/null";
+  ServerRun run;
+  FILE* pipe = popen(command.c_str(), "r");
+  if (pipe == nullptr) return run;
+  std::array<char, 4096> buffer;
+  size_t n;
+  while ((n = fread(buffer.data(), 1, buffer.size(), pipe)) > 0) run.output.append(buffer.data(), n);
+  const int status = pclose(pipe);
+  run.exit_code = WIFEXITED(status) ? WEXITSTATUS(status) : -1;
+  return run;
+}
 
 struct CylinderRig {
   TriangleMesh rest = LoadMesh(DataPath("cylinder/cylinder.obj"));

@@ -85,6 +85,34 @@ class PointCacheTest(unittest.TestCase):
         with self.assertRaises(OSError):
             pointcache.PointCacheWriter(self.path("missing/dir/h.pc2"), 4)
 
+    def test_a_planted_partial_link_is_refused_and_its_target_left_alone(self):
+        # Hardening IV, item 12: the writer opened NAME.pc2.partial following links and overwrote the victim.
+        victim = self.path("victim.txt")
+        with open(victim, "w") as text:
+            text.write("precious")
+        os.symlink(victim, self.path("shot.pc2.partial"))
+        with self.assertRaisesRegex(OSError, "shot.pc2.partial.*not a regular file"):
+            pointcache.write_pc2(self.path("shot.pc2"), samples(2, 3))
+        with open(victim) as text:
+            self.assertEqual(text.read(), "precious")
+        self.assertTrue(os.path.islink(self.path("shot.pc2.partial")))
+        self.assertFalse(os.path.exists(self.path("shot.pc2")))
+        # A stale regular partial (a run killed mid-write) is replaced.
+        os.remove(self.path("shot.pc2.partial"))
+        with open(self.path("shot.pc2.partial"), "w") as stale:
+            stale.write("half a cache")
+        pointcache.write_pc2(self.path("shot.pc2"), samples(2, 3))
+        np.testing.assert_array_equal(pointcache.read_pc2(self.path("shot.pc2")).positions,
+                                      samples(2, 3).astype(np.float32))
+        self.assertFalse(os.path.exists(self.path("shot.pc2.partial")))
+
+    def test_a_sample_not_finite_as_float32_is_refused(self):
+        bad = samples(2, 3)
+        bad[1, 2, 0] = 1e39  # finite as a double, inf as float32
+        with self.assertRaisesRegex(ValueError, "sample 1 .*not finite"):
+            pointcache.write_pc2(self.path("i.pc2"), bad)
+        self.assertEqual(os.listdir(self.directory), [])
+
 
 if __name__ == "__main__":
     unittest.main()

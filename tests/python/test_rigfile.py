@@ -73,6 +73,14 @@ class RigFileTest(unittest.TestCase):
              ["target 'twist': mesh", "vertices, but the rest mesh has 420"]),
             ("combination not a list", lambda d, _: d["targets"][2].update(combination="bend"),
              ["target 'bend_twist': combination", "expected a list, got string"]),
+            # Hardening IV, item 11: names that weights by name cannot address, and one product of weights twice.
+            ("a name with '='", lambda d, _: d["targets"][1].update(name="twist=1"),
+             ["targets[1].name 'twist=1'", "contains '='", "could not address it"]),
+            ("a name with ','", lambda d, _: d["targets"][0].update(name="bend,left"),
+             ["targets[0].name 'bend,left'", "contains ','"]),
+            ("the same drivers twice",
+             lambda d, _: d["targets"].append(dict(d["targets"][2], name="twist_bend", combination=["twist", "bend"])),
+             ["target 'twist_bend': combination", "has the drivers of target 'bend_twist'"]),
         ]
         for what, edit, parts in cases:
             with self.subTest(what), tempfile.TemporaryDirectory() as directory:

@@ -207,7 +207,7 @@ TEST(Collider, DegenerateMeshesAreRefusedNotLoopedOn) {
   EXPECT_TRUE(tet.Penetrates({0.1, 0.1, 0.1}, RigidTransform{}, &s, &n));
   EXPECT_FALSE(tet.Penetrates({1.0, 1.0, 1.0}, RigidTransform{}, &s, &n));
   // Points exactly on a vertex, an edge or in a face's plane through an edge: bounded, whatever the answer.
-  for (const Eigen::Vector3d p : {Eigen::Vector3d(0, 0, 0), Eigen::Vector3d(0.5, 0, 0), Eigen::Vector3d(-1, 0, 0),
+  for (const Eigen::Vector3d& p : {Eigen::Vector3d(0, 0, 0), Eigen::Vector3d(0.5, 0, 0), Eigen::Vector3d(-1, 0, 0),
                                   Eigen::Vector3d(0.25, 0.25, 0), Eigen::Vector3d(-1, -1, -1)}) {
     tet.Penetrates(p, RigidTransform{}, &s, &n);
   }

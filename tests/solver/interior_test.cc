@@ -37,6 +37,9 @@ struct ClosedCase {
   int frames;
 };
 
+// Readable in ctest's output (gtest prints a parameter without PrintTo as raw bytes).
+void PrintTo(const ClosedCase& c, std::ostream* os) { *os << std::string(c.rest) + " -> " + c.target; }
+
 // The anchor, the interior and the volume: no target paths (they do not depend on where a frame's solve starts).
 class ClosedRig : public ::testing::TestWithParam<ClosedCase> {};
 

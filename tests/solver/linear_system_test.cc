@@ -12,6 +12,11 @@
 
 #include "hessian_pattern.h"
 
+namespace springblend {
+// Readable in ctest's output (gtest prints an enum class without PrintTo as raw bytes).
+static void PrintTo(LinearSolverType type, std::ostream* os) { *os << ToString(type); }
+}  // namespace springblend
+
 namespace springblend::internal {
 namespace {
 

@@ -21,6 +21,9 @@ struct SharedCase {
   const char* reason_substring;  // and the reason it gives
 };
 
+// Readable in ctest's output (gtest prints a parameter without PrintTo as raw bytes).
+void PrintTo(const SharedCase& c, std::ostream* os) { *os << std::string(c.name) + " (" + c.rest + ", " + c.target + ")"; }
+
 class SharedMeshes : public ::testing::TestWithParam<SharedCase> {};
 
 TEST_P(SharedMeshes, BuildARigOrFallBackWithTheDocumentedReason) {

@@ -46,6 +46,15 @@ struct RigCase {
   BoundaryMode mode;
 };
 
+std::string RigCaseName(const RigCase& c) {
+  std::string text = c.rest;
+  for (const char* target : c.targets) text += std::string(" + ") + target;
+  return text;
+}
+
+// Readable in ctest's output (gtest prints a parameter without PrintTo as raw bytes).
+void PrintTo(const RigCase& c, std::ostream* os) { *os << RigCaseName(c); }
+
 class ReproducesShapes : public ::testing::TestWithParam<RigCase> {
  protected:
   std::shared_ptr<const Rig> Build() const {
@@ -94,11 +103,11 @@ INSTANTIATE_TEST_SUITE_P(
                 BoundaryMode::kAnchored}),
     // A name per case (mesh, target count, boundary), so that CTest lists and filters each one (without it
     // every case showed as ".../40-byte" and ran under one name).
-    [](const ::testing::TestParamInfo<RigCase>& info) {
-      const std::string rest = info.param.rest;
+    [](const ::testing::TestParamInfo<RigCase>& rig) {
+      const std::string rest = rig.param.rest;
       const std::string mesh = rest.substr(0, rest.find('/'));
-      return mesh + "_" + std::to_string(info.param.targets.size()) + "_targets_" +
-             (info.param.mode == BoundaryMode::kAnchored ? "anchored" : "fixed");
+      return mesh + "_" + std::to_string(rig.param.targets.size()) + "_targets_" +
+             (rig.param.mode == BoundaryMode::kAnchored ? "anchored" : "fixed");
     });
 
 TEST(Sweep, EndsExactlyOnTheTargetWithEveryFrameInEquilibrium) {
@@ -383,7 +392,9 @@ TEST(Blend, SolverBytesCoverWhatASolverHoldsAfterAFrame) {
       const std::int64_t held = heap() - before;
       EXPECT_GE(counted, held) << rest << " " << ToString(method);
       // L-BFGS factors only when it falls back to Newton; it is counted as if it did.
-      if (method != SolveMethod::kLbfgs) EXPECT_LE(counted, 3 * held) << rest << " " << ToString(method);
+      if (method != SolveMethod::kLbfgs) {
+        EXPECT_LE(counted, 3 * held) << rest << " " << ToString(method);
+      }
     }
   }
 #endif

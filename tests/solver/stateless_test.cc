@@ -26,6 +26,9 @@ struct StatelessCase {
   std::vector<double> end;  // the sweep's last weights
 };
 
+// Readable in ctest's output (gtest prints a parameter without PrintTo as raw bytes).
+void PrintTo(const StatelessCase& c, std::ostream* os) { *os << std::string(c.name) + " (" + c.rest + ")"; }
+
 std::string PathOf(const StatelessCase& c, const char* file) {
   return c.shared ? std::string(SPRINGBLEND_SHARED_MESHES) + "/" + file : DataPath(file);
 }

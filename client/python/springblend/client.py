@@ -15,7 +15,7 @@ import numpy as np
 
 from springblend import arrays, colliders as shapes, performance, pointcache, rigfile, routing
 from springblend._generated import health_pb2, pb, pb_grpc
-from springblend.errors import SpringblendError, invalid_argument
+from springblend.errors import SpringblendError, bad_answer, invalid_argument
 
 # The metadata header that names the character of a call, so a load balancer can route by it (the C++
 # client's kCharacterHeader).
@@ -368,9 +368,22 @@ class Client:
                                                     pb.LinearTargets(names=[str(n) for n in linear_targets]))),
             frames=_frame_requests(self._by_position(character_id, weights), collider_transforms, pins))
         call = self._solves.Solve(request, timeout=self.timeout, metadata=self._metadata(character_id))
+        expected = len(request.frames)
+        received = 0
+        vertices = None
         try:
             for frame in call:
-                yield _decode(frame)
+                # The server answers every frame once, in order: anything else is not a solution of this request.
+                if frame.index >= expected:
+                    raise bad_answer(f"frame {frame.index} came, but the request has {expected} frames")
+                if frame.index != received:
+                    raise bad_answer(f"frame {frame.index} came where frame {received} of {expected} was due")
+                solved = _decode(frame, vertices)
+                vertices = solved.positions.shape[0]
+                received += 1
+                yield solved
+            if received != expected:
+                raise bad_answer(f"the stream ended after {received} of {expected} frames")
         except grpc.RpcError as error:
             raise self._error(error) from None
         finally:
@@ -507,9 +520,10 @@ class InteractiveSession:
         transforms = None if collider_transforms is None else [collider_transforms]
         frame_pins = None if pins is None else [pins]
         (request,) = _frame_requests([np.ravel(self._by_position(weights))], transforms, frame_pins)
+        index = self._sent
+        self._sent += 1  # before the frame goes: its answer may come back at once
         self._outbox.put(pb.InteractiveRequest(frame=request))
-        self._sent += 1
-        return self._sent - 1
+        return index
 
     def close(self):
         """Half-closes: no more frames; the stream ends once the last one is answered."""
@@ -525,7 +539,10 @@ class InteractiveSession:
     def next_frame(self):
         """Blocks for the next SolvedFrame; None once the stream has ended."""
         try:
-            return _decode(next(self._responses))
+            frame = next(self._responses)
+            if frame.index >= self._sent:
+                raise bad_answer(f"frame {frame.index} came, but the session has sent {self._sent} frames")
+            return _decode(frame)
         except StopIteration:
             return None
         except grpc.RpcError as error:
@@ -572,10 +589,25 @@ def _read_pem(what, path):
     return data
 
 
-def _decode(frame):
-    normals = arrays.unpack_float32(frame.normals) if frame.normals else None
-    return SolvedFrame(index=frame.index, positions=arrays.unpack_float32(frame.positions), normals=normals,
-                       summary=frame.summary)
+def _decode(frame, vertices=None):
+    """A SolvedFrame message as numpy arrays; SpringblendError (DATA_LOSS) when its arrays are not #V by 3 finite
+    float32 (V = vertices when given: the frames before it), normals when sent of the positions' shape."""
+    where = f"frame {frame.index}"
+    try:
+        positions = arrays.unpack_float32(frame.positions)
+        normals = arrays.unpack_float32(frame.normals) if frame.normals else None
+    except ValueError as error:
+        raise bad_answer(f"{where}: {error}") from None
+    if positions.shape[0] == 0 or (vertices is not None and positions.shape[0] != vertices):
+        raise bad_answer(f"{where} has {positions.shape[0]} vertices, the frames before it {vertices}"
+                         if vertices is not None else f"{where} has no vertices")
+    if normals is not None and normals.shape != positions.shape:
+        raise bad_answer(f"{where} has {normals.shape[0]} normals for {positions.shape[0]} vertices")
+    for name, values in (("positions", positions), ("normals", normals)):
+        if values is not None and not np.all(np.isfinite(values)):
+            vertex = int(np.argwhere(~np.isfinite(values))[0][0])
+            raise bad_answer(f"{where}: {name} of vertex {vertex} are not finite")
+    return SolvedFrame(index=frame.index, positions=positions, normals=normals, summary=frame.summary)
 
 
 def _frame_requests(weights, collider_transforms, pins):

@@ -28,3 +28,9 @@ class SpringblendError(Exception):
 def invalid_argument(message):
     """A SpringblendError for a mistake this client catches before anything is sent."""
     return SpringblendError(grpc.StatusCode.INVALID_ARGUMENT, message)
+
+
+def bad_answer(message):
+    """A SpringblendError (DATA_LOSS) for an answer from the server this client will not trust: frames missing,
+    extra, repeated or out of order, arrays of the wrong shape, positions that are not finite."""
+    return SpringblendError(grpc.StatusCode.DATA_LOSS, f"the server's answer is not a solution: {message}")

@@ -8,6 +8,7 @@ point per sample. Frame i (0-based) of a solve is sample i; the start frame is 1
 
 import dataclasses
 import os
+import stat
 import struct
 
 import numpy as np
@@ -44,7 +45,7 @@ class PointCacheWriter:
         self.num_points = int(num_points)
         self.samples = 0
         self._partial = self.path + ".partial"
-        self._file = open(self._partial, "wb")
+        self._file = os.fdopen(_create_partial(self.path, self._partial), "wb")
         self._file.write(_HEADER.pack(SIGNATURE, 1, self.num_points, float(start_frame), float(sample_rate), 0))
 
     def add(self, positions):
@@ -55,6 +56,8 @@ class PointCacheWriter:
         if sample.shape != (self.num_points, 3):
             raise ValueError(f"{self.path}: sample {self.samples} has shape {sample.shape}, the cache needs "
                              f"({self.num_points}, 3)")
+        if not np.all(np.isfinite(sample)):
+            raise ValueError(f"{self.path}: sample {self.samples} has positions that are not finite as float32")
         self._file.write(np.ascontiguousarray(sample).tobytes())
         self.samples += 1
 
@@ -87,6 +90,24 @@ class PointCacheWriter:
             self.close()
         else:
             self.discard()
+
+
+def _create_partial(path, partial):
+    """The temporary, created afresh and never through a link (as the C++ writer does): a planted
+    NAME.pc2.partial -> victim must not get the victim overwritten. A stale regular partial (an earlier run killed
+    mid-write) is removed first; anything else there (a link, a directory, a FIFO) is refused with OSError."""
+    try:
+        if stat.S_ISREG(os.lstat(partial).st_mode):
+            os.unlink(partial)
+    except FileNotFoundError:
+        pass
+    flags = os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, "O_NOFOLLOW", 0) | getattr(os, "O_CLOEXEC", 0)
+    try:
+        return os.open(partial, flags, 0o644)
+    except OSError as error:
+        hint = "; it is not a regular file (a link?): remove it" if isinstance(error, FileExistsError) else ""
+        raise OSError(error.errno, f"{path}: cannot write the point cache: {partial} ({error.strerror}){hint}") \
+            from error
 
 
 def write_pc2(path, positions, start_frame=1.0, sample_rate=1.0):

@@ -179,12 +179,18 @@ def load_rig(path):
     if not entries:
         _fail(path, "targets is empty: a rig needs at least one target")
     targets = []
+    combinations = {}  # sorted drivers -> the first target with them
     for t, entry in enumerate(entries):
         where = f"{path}: targets[{t}]"
         _check_keys(entry, where, {"name", "mesh", "inbetweens", "mask", "combination"}, ("name", "mesh"))
         name = _string(entry["name"], f"{where}.name")
         if not name:
             _fail(f"{where}.name", "is empty")
+        for character in "=,":
+            # Weights are given by name as NAME=WEIGHT,NAME=WEIGHT: such a name could not be addressed.
+            if character in name:
+                _fail(f"{where}.name '{name}'",
+                      f"contains '{character}': weights given by name (NAME=WEIGHT,...) could not address it")
         where = f"{path}: target '{name}'"
         target = Target(name, mesh(entry["mesh"], f"{where}: mesh"))
         for i, inbetween in enumerate(_list(entry.get("inbetweens", []), f"{where}: inbetweens")):
@@ -198,6 +204,11 @@ def load_rig(path):
             target.combination = [_string(d, f"{where}: combination[{i}]") for i, d in enumerate(drivers)]
             if not target.combination:
                 _fail(f"{where}: combination", "is empty (name at least two targets)")
+            # a*b and b*a are one product of weights: two correctives on it would both switch on together.
+            first = combinations.setdefault(tuple(sorted(target.combination)), name)
+            if first != name:
+                _fail(f"{where}: combination", f"has the drivers of target '{first}' (in any order, the same product "
+                      "of weights): one combination per set of drivers")
         targets.append(target)
     return Rig(rest, faces, targets, fixed, path)
 

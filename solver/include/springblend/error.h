@@ -26,4 +26,13 @@ class Error : public std::runtime_error {
   ErrorCode code_;
 };
 
+// Data the solver reads back from a file it was given (a cache file's target paths) could not be read: the file
+// was cut short, or failed, after it was opened. Its code is kInternal, what every front end answers for it; a
+// holder of the rig (the server's store) also knows by the type that the rig is damaged, not the request, and
+// drops it so that it is built anew.
+class DataLossError : public Error {
+ public:
+  explicit DataLossError(const std::string& message) : Error(ErrorCode::kInternal, message) {}
+};
+
 }  // namespace springblend

@@ -215,11 +215,28 @@ struct RigBuildProgress {
   int samples_done = 0;         // path samples kept by the targets done
   double elapsed_ms = 0.0;
 };
+// An open file descriptor, closed when the last owner lets it go.
+class OpenFile {
+ public:
+  explicit OpenFile(int fd) : fd_(fd) {}
+  ~OpenFile();
+  OpenFile(const OpenFile&) = delete;
+  OpenFile& operator=(const OpenFile&) = delete;
+  int fd() const { return fd_; }
+
+ private:
+  int fd_;
+};
+
 // Where Rig::SavePrecomputed's bytes are in a file: [offset, offset + size), size -1 for the rest of the file.
 struct PrecomputedLocation {
-  std::string file;
+  std::string file;  // for messages, and opened when there is no `opened`
   std::int64_t offset = 0;
   std::int64_t size = -1;
+  // The file, already open by whoever checked it: read through (a duplicate of) this descriptor, never by opening
+  // `file` again, which something renamed over it since (a FIFO: the open would block for good) would change.
+  // Null: `file` is opened without blocking, and must be a regular file.
+  std::shared_ptr<const OpenFile> opened;
 };
 
 // Tells Rig::SavePrecomputed's bytes, in order, in pieces of a few megabytes to `write`, so they are never held
