@@ -188,9 +188,9 @@ TEST(MixTest, OneTargetIsThePapersFrameACorrectiveAloneItsBlendMixesAreStateless
     for (int i = 0; i <= 12; ++i) {
       std::vector<double> two = one;
       two[2] = 0.05 * i;
-      Points x, lin;
-      const SolveSummary s = sweep.Solve(Frame{two}, &x);
-      l.Solve(Frame{two}, &lin);
+      Points answer, blend;
+      const SolveSummary s = sweep.Solve(Frame{two}, &answer);
+      l.Solve(Frame{two}, &blend);
       ASSERT_TRUE(s.converged()) << i << ": " << s.message;
       EXPECT_EQ(s.minimum, MinimumCheck::kMinimum) << i;
       const double share = i == 0 ? 1.0 : s.mix_strain_share;
@@ -198,11 +198,13 @@ TEST(MixTest, OneTargetIsThePapersFrameACorrectiveAloneItsBlendMixesAreStateless
       between += share > 0.0 && share < 1.0;
       previous_share = share;
       if (i > 0) {
-        const double step = MaxDistance(x, previous), linear_step = MaxDistance(lin, previous_linear);
-        if (step > 1e-3 * diagonal) EXPECT_LE(step, 2.0 * linear_step) << "step " << i;
+        const double step = MaxDistance(answer, previous), linear_step = MaxDistance(blend, previous_linear);
+        if (step > 1e-3 * diagonal) {
+          EXPECT_LE(step, 2.0 * linear_step) << "step " << i;
+        }
       }
-      previous = x;
-      previous_linear = lin;
+      previous = answer;
+      previous_linear = blend;
     }
     EXPECT_GE(between, 1);
   }
