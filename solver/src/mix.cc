@@ -19,16 +19,6 @@
 
 namespace springblend::internal {
 
-int SoleTarget(const std::vector<double>& weights) {
-  int sole = -1;
-  for (size_t t = 0; t < weights.size(); ++t) {
-    if (weights[t] == 0.0) continue;
-    if (sole >= 0) return -1;
-    sole = static_cast<int>(t);
-  }
-  return sole;
-}
-
 std::vector<char> LinearTargets(const Rig& rig, const SolveOptions& options) {
   std::vector<char> linear(rig.num_targets(), 0);
   const auto lower = [](std::string s) {
@@ -130,6 +120,19 @@ Eigen::MatrixXd AveragedCorrection(const Rig& rig, const std::vector<double>& we
   return weighted;
 }
 
+// Target t alone at its weight in this frame: its sculpted shapes that change lengths, with their weights (its
+// in-betweens blend in as the frame's would).
+std::vector<std::pair<int, double>> LengthShapesAlone(const Rig& rig, const std::vector<double>& weights, int t) {
+  std::vector<double> single(weights.size(), 0.0);
+  single[t] = weights[t];
+  const std::vector<double> shape_weights = rig.ShapeWeights(single);
+  std::vector<std::pair<int, double>> shapes;
+  for (int s = 0; s < rig.num_shapes(); ++s) {
+    if (shape_weights[s] != 0.0 && rig.target_changes_lengths(s)) shapes.emplace_back(s, shape_weights[s]);
+  }
+  return shapes;
+}
+
 // How much of the targets' residual strains a mix carries: 2 S_max / sum_t S_t - 1 clamped to [0, 1], S_t the
 // size of target t's length changes at its weight (sum over springs of |w_t (r^t - r^0)|, times its factor). 1 where
 // one target alone changes lengths (the paper's frame: its strains exactly), falling as others join, 0 once the
@@ -140,14 +143,10 @@ double PrestressShare(const Rig& rig, const std::vector<double>& weights, const 
   const int m = rig.num_springs();
   std::vector<double> size(moved.size(), 0.0);
   tbb::parallel_for(size_t{0}, moved.size(), [&](size_t i) {
-    std::vector<double> single(weights.size(), 0.0);
-    single[moved[i]] = weights[moved[i]];
-    const std::vector<double> shape_weights = rig.ShapeWeights(single);
     std::vector<double> change(m, 0.0);
-    for (int s = 0; s < rig.num_shapes(); ++s) {
-      if (shape_weights[s] == 0.0 || !rig.target_changes_lengths(s)) continue;
+    for (const auto& [s, w] : LengthShapesAlone(rig, weights, moved[i])) {
       const std::vector<double>& delta = rig.rest_length_delta(s);
-      for (int q = 0; q < m; ++q) change[q] += shape_weights[s] * delta[q];
+      for (int q = 0; q < m; ++q) change[q] += w * delta[q];
     }
     double sum = 0.0;
     for (double c : change) sum += std::abs(c);
@@ -218,12 +217,9 @@ double SuperposedRestLengths(const Rig& rig, const std::vector<double>& weights,
     std::vector<Alone> alone(std::min(kGroup, moved.size() - first));
     tbb::parallel_for(size_t{0}, alone.size(), [&](size_t i) {
       const int t = moved[first + i];
+      alone[i].shapes = LengthShapesAlone(rig, weights, t);
       std::vector<double> single(weights.size(), 0.0);
       single[t] = weights[t];
-      const std::vector<double> shape_weights = rig.ShapeWeights(single);
-      for (int s = 0; s < rig.num_shapes(); ++s) {
-        if (shape_weights[s] != 0.0 && rig.target_changes_lengths(s)) alone[i].shapes.emplace_back(s, shape_weights[s]);
-      }
       Prediction(rig, single, linear, use_paths, &alone[i].x);
       alone[i].factor = factors[t];
     });
