@@ -28,7 +28,7 @@ inline std::string DataPath(const std::string& relative) {
 }
 
 // Rig options for tests of everything but the target paths themselves: paths swept at 8 steps per unit rather
-// than the default 32 (a frame's answer still starts from its own target's path; solver_target_paths_test and
+// than the default 16 (a frame's answer still starts from its own target's path; solver_target_paths_test and
 // the server's restart tests build the default paths), so the suites stay within CI's time under the sanitizers.
 inline RigOptions TestRigOptions() {
   RigOptions options;

@@ -422,7 +422,7 @@ std::vector<std::pair<std::string, Runner>> AddServiceCommands(CLI::App& app) {
   upload->add_flag("--no-target-paths", args->no_target_paths,
                    "build no target paths: a faster upload, slower frames (still stateless)");
   upload->add_option("--path-intervals", args->path_intervals,
-                     "target paths' continuation steps per unit of weight (default 32; denser paths finish more "
+                     "target paths' continuation steps per unit of weight (default 16; denser paths finish more "
                      "frames locally where a character's paths snap often, at more memory and upload time)")
       ->check(CLI::Range(4, 128));
   upload->add_option("--path-max-samples", args->path_max_samples, "samples kept per target path (default 64)")

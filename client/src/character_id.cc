@@ -20,7 +20,7 @@ constexpr char kRigMarker[8] = {'S', 'B', 'R', 'I', 'G', '0', '0', '1'};
 constexpr char kOptionsMarker[8] = {'S', 'B', 'O', 'P', 'T', '0', '0', '1'};
 // RigOptions' defaults, which a zero BuildOptions field means.
 constexpr double kDefaultStaticTolerance = 1e-6;
-constexpr std::uint32_t kDefaultPathIntervals = 32;   // RigOptions::path_intervals
+constexpr std::uint32_t kDefaultPathIntervals = 16;   // RigOptions::path_intervals
 constexpr std::uint32_t kDefaultPathMaxSamples = 64;  // RigOptions::path_max_samples
 constexpr double kDefaultBendingStiffness = 1.0;
 

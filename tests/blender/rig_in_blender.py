@@ -109,7 +109,7 @@ def main():
     check(bpy.ops.springblend.upload() == {"FINISHED"}, "upload with held vertices failed")
     held_character = obj.springblend_character
     # The paths' density too.
-    obj.springblend_path_intervals = 16
+    obj.springblend_path_intervals = 8
     check(bpy.ops.springblend.upload() == {"FINISHED"}, "upload with denser paths failed")
     pathlib.Path(config["result"]).write_text(json.dumps({"character": character, "held_character": held_character,
                                                           "dense_character": obj.springblend_character}))

@@ -63,10 +63,10 @@ def main():
         if held["rim_vertices"] <= 0:
             raise SystemExit(f"rig_test: no outer rim held: {held}")
         dense = json.loads(testing.cli("upload", "--server", server.address, "--rig", exported, "--fixed", "0,1,2",
-                                       "--hold-outer-rim", "--path-intervals", "16").splitlines()[-1])
+                                       "--hold-outer-rim", "--path-intervals", "8").splitlines()[-1])
         if dense["id"] != json.load(open(config["result"]))["dense_character"] or dense["id"] == held["id"]:
-            raise SystemExit(f"rig_test: the CLI's upload with --path-intervals 16 is {dense['id']}, not the add-on's "
-                             "character with Path Steps 16")
+            raise SystemExit(f"rig_test: the CLI's upload with --path-intervals 8 is {dense['id']}, not the add-on's "
+                             "character with Path Steps 8")
         expected = testing.cli_blend_rig(exported, WEIGHTS, directory)
     runner.largest_error(baked, expected, "rig_test (shape keys of a production rig)")
     sculpt = testing.load_obj(testing.CYLINDER / "poses-2_cylinder-4.obj")[0]

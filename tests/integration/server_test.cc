@@ -372,7 +372,7 @@ TEST(ServerRouting, ClientsComputeTheIdTheServerGivesAndAMismatchIsCounted) {
   v1::BuildOptions rim;
   rim.set_hold_outer_rim(true);
   v1::BuildOptions dense;  // coarser than the default, to stay quick: any density other than the default
-  dense.set_path_intervals(16);
+  dense.set_path_intervals(8);
   dense.set_path_max_samples(40);
   std::vector<RigTarget> production = plain;
   RigTarget::Inbetween half;

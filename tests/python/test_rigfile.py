@@ -209,7 +209,7 @@ class RigUploadTest(unittest.TestCase):
                                      no_target_paths=True).id)
             ids.append(client.upload(rig.rest, rig.faces, targets, no_target_paths=True).id)
             ids.append(client.upload(rig.rest, rig.faces, targets, no_target_paths=True, hold_outer_rim=True).id)
-            dense = client.upload(rig.rest, rig.faces, targets, path_intervals=16, path_max_samples=40)
+            dense = client.upload(rig.rest, rig.faces, targets, path_intervals=8, path_max_samples=40)
             ids.append(dense.id)
         self.assertEqual(recorder.routes, ids)
         self.assertEqual(len(set(ids)), 6)

@@ -100,7 +100,7 @@ def register_properties():
                     "colliders work. Vertices of a vertex group named 'springblend_fixed' are held too")
     bpy.types.Object.springblend_path_intervals = bpy.props.IntProperty(
         name="Path Steps", default=0, min=0, max=128,
-        description="Target paths' continuation steps per unit of weight (0: the server's default, 32; else 4 to "
+        description="Target paths' continuation steps per unit of weight (0: the server's default, 16; else 4 to "
                     "128). A character whose paths snap often finishes more single-target frames locally from "
                     "denser paths, at more memory and a longer upload")
     bpy.types.Object.springblend_path_max_samples = bpy.props.IntProperty(

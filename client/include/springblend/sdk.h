@@ -81,7 +81,7 @@ struct BuildOptions {
   bool no_anchor = false;
   bool no_target_paths = false;
   bool hold_outer_rim = false;  // hold an open surface's outer rim (a face mask's): colliders then work
-  // The target paths' density: steps per unit of weight [4, 128] (default 32) and samples kept per target
+  // The target paths' density: steps per unit of weight [4, 128] (default 16) and samples kept per target
   // [8, 256] (default 64). Denser paths finish more single-target frames locally where a character's paths
   // snap often, at more memory and a longer upload.
   int path_intervals = 0;

@@ -133,7 +133,7 @@ class Client:
                 hold_outer_rim, path_intervals, path_max_samples: the rig builder's BuildOptions (zero values
                 mean the server's defaults). hold_outer_rim holds an open surface's outer rim (a face mask's) on
                 the linear blend, so a rig whose targets move every vertex is held and takes colliders and pins.
-                path_intervals (steps per unit of weight, [4, 128], default 32) and path_max_samples (per
+                path_intervals (steps per unit of weight, [4, 128], default 16) and path_max_samples (per
                 target, [8, 256], default 64) make the target paths denser: more single-target frames finish
                 locally where a character's paths snap often, at more memory and upload time.
             on_progress: None, or a function called as on_progress(character_id, progress) about twice a second
