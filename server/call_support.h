@@ -6,6 +6,7 @@
 #include <grpcpp/grpcpp.h>
 #include <grpcpp/support/byte_buffer.h>
 #include <grpcpp/support/proto_buffer_reader.h>
+#include <fmt/format.h>
 
 #include <chrono>
 #include <cstdint>
@@ -59,6 +60,18 @@ class Refusal final : public Reactor {
   void OnDone() override { delete this; }
 };
 
+// The largest request GetCharacter, ListCharacters and DeleteCharacter take: an id and a few flags. gRPC has one
+// receive limit for every method (ServerOptions::max_receive_message_bytes), which Solve's and Interactive's
+// requests need, and receives a unary request whole before any handler (or interceptor) runs; a larger one is
+// refused with RESOURCE_EXHAUSTED before it is parsed, and its memory given back (ReturnFreeHeapSoon).
+inline constexpr std::int64_t kMetadataRequestLimit = 1 << 20;
+
+// A request as gRPC received it, before the token is checked: a large one asks for the heap to be trimmed once
+// its call has ended (its buffers freed), whatever the answer.
+inline void Received(const grpc::ByteBuffer& request) {
+  if (static_cast<std::int64_t>(request.Length()) >= kLargeRequestBytes) ReturnFreeHeapSoon();
+}
+
 // Parses the request, then runs `work(request, &response, done)` on the metadata pool; `done(status)` finishes
 // the unary call, once, from any thread (now, or later: a call that waits for a build holds no worker).
 // Refuses at once when the token does not allow the call, the bytes do not parse, or the queue is full.
@@ -69,11 +82,20 @@ grpc::ServerUnaryReactor* OnPoolDeferred(grpc::CallbackServerContext* call, Serv
   SolverPool& pool = context.metadata_pool;
   grpc::ServerUnaryReactor* reactor = call->DefaultReactor();
   Metrics& metrics = context.metrics;
+  Received(*in);
   if (auto refused = Refused(call, context, method, needed)) {
     reactor->Finish(*refused);
     return reactor;
   }
   CallInfo info = BeginCall(call, method);
+  if (const auto bytes = static_cast<std::int64_t>(in->Length()); bytes > kMetadataRequestLimit) {
+    const grpc::Status status = ToStatus(LimitError(fmt::format(
+        "the {} request is {} bytes, over this method's limit of {} bytes (an id and a few flags)", method, bytes,
+        kMetadataRequestLimit)));
+    EndCall(metrics, info, status);
+    reactor->Finish(status);
+    return reactor;
+  }
   auto request = std::make_shared<Request>();
   if (!Parse(*in, request.get())) {
     const grpc::Status status = Unparseable(Request::descriptor()->name());

@@ -770,15 +770,30 @@ void CharacterStore::Insert(std::shared_ptr<const Entry> entry) {
   lru_.push_front(id);
   stats_.bytes += entry->bytes;
   entries_[id] = Slot{std::move(entry), lru_.begin()};
-  // Evict the least recently used, but never the entry just inserted.
-  while (stats_.bytes > options_.memory_budget_bytes && lru_.size() > 1) {
-    const std::string victim = lru_.back();
-    lru_.pop_back();
-    stats_.bytes -= entries_[victim].entry->bytes;
-    entries_.erase(victim);
+  stats_.characters = static_cast<std::int64_t>(entries_.size());
+  Trim();
+}
+
+void CharacterStore::Trim() {
+  // Someone besides the store holding an entry or its rig (an open Solve stream or Interactive session, a
+  // Solver) keeps it alive: evicting it would free nothing, and the next call for it would build a second copy
+  // beside the first, which the budget would no longer count. Such entries stay (counted) until they are free.
+  const auto in_use = [](const std::shared_ptr<const Entry>& entry) {
+    return entry.use_count() > 1 || entry->rig.use_count() > 1;
+  };
+  // The least recently used first, never the most recently used one.
+  std::vector<std::string> victims;
+  std::int64_t bytes = stats_.bytes;
+  for (auto it = lru_.rbegin(); bytes > options_.memory_budget_bytes && std::next(it) != lru_.rend(); ++it) {
+    const std::shared_ptr<const Entry>& entry = entries_.at(*it).entry;
+    if (in_use(entry)) continue;
+    victims.push_back(*it);
+    bytes -= entry->bytes;
+  }
+  for (const std::string& victim : victims) {
+    Erase(entries_.find(victim));
     ++stats_.evictions;
   }
-  stats_.characters = static_cast<std::int64_t>(entries_.size());
 }
 
 std::shared_ptr<const CharacterStore::Entry> CharacterStore::Rebuild(const std::string& id, const CacheFile& file,
@@ -924,8 +939,10 @@ CharacterStore::Found CharacterStore::Lookup(const std::string& id, CharacterDat
     lru_.splice(lru_.begin(), lru_, it->second.position);
     ++stats_.hits;
     found.entry = it->second.entry;
+    Trim();  // entries in use when the budget was last exceeded may be free now (this one is held: it stays)
     return found;
   }
+  Trim();
   ++stats_.misses;
   if (auto other = building_.find(id); other != building_.end()) {
     found.building = other->second;

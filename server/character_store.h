@@ -195,6 +195,9 @@ class CharacterStore {
   // building_ at once, so a new caller starts a build of its own rather than join one that is stopping).
   bool Abandoned(const std::shared_ptr<PendingBuild>& flight);
   void Insert(std::shared_ptr<const Entry> entry);  // caller holds mutex_
+  // Evicts the least recently used entries no one else holds until the budget is met (or only the most recently
+  // used one, or entries in use, are left); the caller holds mutex_.
+  void Trim();
   std::string PathOf(const std::string& id) const;
   // Where the precomputed part landed (for the rig to read its samples from), nullopt when not written.
   // The precomputed part is told by `precomputed` in pieces (a rig's WritePrecomputed), never held together.

@@ -33,6 +33,10 @@ int main(int argc, char** argv) {
   app.add_option("--workers", o.workers, "solver threads")->check(CLI::Range(1, 1024));
   app.add_option("--queue", o.queue, "jobs waiting for a solver thread before RESOURCE_EXHAUSTED")->check(CLI::Range(1, 100000));
   app.add_option("--memory-budget-mb", memory_mb, "memory for built characters; least recently used go first")->check(CLI::Range(1, 1 << 20));
+  app.add_option("--max-open-cache-files", o.max_open_cache_files,
+                 "cache files kept open for the characters in memory to read their paths from; past it the least "
+                 "recently read are closed and reopened when read (default: half the open-file limit, at least 16)")
+      ->check(CLI::Range(1, 1'000'000));
   app.add_option("--max-upload-bytes", o.limits.max_upload_bytes, "largest upload")
       ->check(CLI::Range(kMinUploadBytes, kMaxUploadBytes));
   app.add_option("--max-vertices", o.limits.max_vertices, "most vertices in a character")

@@ -6,6 +6,7 @@
 #include <grpcpp/server.h>
 #include <grpcpp/server_builder.h>
 #include <spdlog/spdlog.h>
+#include <sys/resource.h>
 #include <unistd.h>
 
 #include <cstdlib>
@@ -18,6 +19,7 @@
 #include "service.h"
 #include "solver_pool.h"
 #include "springblend/error.h"
+#include "springblend/open_files.h"
 #include "springblend/version.h"
 
 namespace springblend::server {
@@ -63,6 +65,13 @@ std::string DefaultCacheDirectory() {
   return "springblend-cache";
 }
 
+int ServerOptions::OpenCacheFileLimit() const {
+  if (max_open_cache_files > 0) return max_open_cache_files;
+  struct rlimit files {};
+  const rlim_t soft = ::getrlimit(RLIMIT_NOFILE, &files) == 0 ? files.rlim_cur : 1024;
+  return static_cast<int>(std::max<rlim_t>(16, std::min<rlim_t>(soft, 2'000'000) / 2));
+}
+
 void ServerOptions::Validate() const {
   for (const auto& address : listen) CheckListenAddress(address, "--listen");
   CheckRange("workers", workers, 0, 1024);
@@ -76,6 +85,7 @@ void ServerOptions::Validate() const {
   CheckRange("max_vertices (--max-vertices)", limits.max_vertices, kMinVertices, kMaxVertices);
   CheckRange("max_frames (--max-frames)", limits.max_frames, 1, kMaxFrames);
   CheckRange("max_receive_message_bytes", max_receive_message_bytes, 1 << 10, 1 << 30);
+  CheckRange("max_open_cache_files (--max-open-cache-files)", max_open_cache_files, 0, 1'000'000);
   if (timeouts.stall.count() <= 0 || timeouts.idle.count() <= 0) Invalid("timeouts: stall and idle must be positive");
   if (drain.count() < 0) Invalid("drain must not be negative");
   if (!metrics_listen.empty()) CheckListenAddress(metrics_listen, "--metrics");
@@ -153,6 +163,9 @@ std::unique_ptr<Server> Server::Create(ServerOptions options) {
                  state->cleanup.in_use ? fmt::format(" ({} in use by another writer, kept)", state->cleanup.in_use)
                                        : "");
   }
+
+  // Each character in memory reads its paths from its cache file: a bounded number of those stay open.
+  SetOpenPathFileLimit(o.OpenCacheFileLimit());
 
   grpc::EnableDefaultHealthCheckService(true);
   grpc::reflection::InitProtoReflectionServerBuilderPlugin();
@@ -274,6 +287,9 @@ std::string Server::MetricsText() const {
            "Builds stopped (no waiter wanted them, or shutdown).", s.store.cancelled_builds);
     family("springblend_cache_bytes", "gauge", "Memory counted for the characters held.", s.store.bytes);
     family("springblend_cache_characters", "gauge", "Characters held in memory.", s.store.characters);
+    family("springblend_cache_open_files", "gauge",
+           "Cache files open for characters to read their paths from (at most --max-open-cache-files).",
+           OpenPathFiles());
     family("springblend_queue_depth", "gauge", "Jobs waiting in the solve pool's queue.", s.queue_depth);
     family("springblend_workers_busy", "gauge", "Solve pool workers running a job.", s.workers_busy);
     family("springblend_workers", "gauge", "Solve pool workers.", s.workers);

@@ -53,6 +53,10 @@ struct ServerOptions {
   StreamTimeouts timeouts;                       // stalled streams, idle Interactive sessions
   std::string replica_name;                      // every frame's served_by; empty: the host name
   int max_receive_message_bytes = 64 << 20;
+  // Cache files kept open for the characters in memory to read their target paths from; past it the least
+  // recently read are closed and opened again when read (springblend/open_files.h). 0: half the process's
+  // RLIMIT_NOFILE soft limit (at least 16), leaving the rest for connections and files being written.
+  int max_open_cache_files = 0;
 
   std::string metrics_listen;  // HOST:PORT of the Prometheus endpoint (GET /metrics); empty: off
   std::string health_listen;   // HOST:PORT of a plaintext port serving only grpc.health.v1; empty: off
@@ -61,6 +65,8 @@ struct ServerOptions {
 
   // Throws Error(kInvalidInput) naming the field when a value is out of range.
   void Validate() const;
+  // max_open_cache_files, or its default when 0.
+  int OpenCacheFileLimit() const;
 };
 
 // What the server holds and does right now, for tests and the metrics endpoint.

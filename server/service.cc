@@ -103,6 +103,7 @@ grpc::ServerBidiReactor<grpc::ByteBuffer, grpc::ByteBuffer>* SolveServiceImpl::I
 grpc::ServerWriteReactor<grpc::ByteBuffer>* SolveServiceImpl::Solve(grpc::CallbackServerContext* call,
                                                                     const grpc::ByteBuffer* in) {
   using Refuse = Refusal<grpc::ServerWriteReactor<grpc::ByteBuffer>>;
+  Received(*in);
   if (auto refused = Refused(call, context_, "Solve", Access::kRead)) return new Refuse(*refused);
   // The bytes gRPC received are counted until parsed (a request of pins parses to several times its size).
   Reservation received(&context_.memory);

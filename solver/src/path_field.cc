@@ -14,6 +14,7 @@
 #include <vector>
 
 #include "springblend/error.h"
+#include "springblend/open_files.h"
 #include "springblend/rig.h"
 
 namespace springblend::internal {
@@ -23,7 +24,101 @@ constexpr double kHighSteps = 2147483647.0;         // 2^31 - 1: the largest mag
 constexpr double kLowScale = 4294967296.0;          // 2^32 low steps per high step
 constexpr double kLowMax = 2147483647.0;
 
+// The open path files with a name: the most recently read first, at most `limit` (0: any number).
+struct PathFileRegistry {
+  std::mutex mutex;
+  std::list<const PathFile*> open;
+  int limit = 0;
+};
+
+PathFileRegistry& Registry() {
+  static auto* registry = new PathFileRegistry;  // never destroyed: rigs may outlive static destructors
+  return *registry;
+}
+
 }  // namespace
+
+void PathFile::Track(std::uint64_t device, std::uint64_t inode) {
+  device_ = device;
+  inode_ = inode;
+  tracked_ = true;
+  PathFileRegistry& registry = Registry();
+  std::lock_guard lock(registry.mutex);
+  registry.open.push_front(this);
+  position_ = registry.open.begin();
+  CloseIdle();
+}
+
+void PathFile::CloseIdle() {
+  PathFileRegistry& registry = Registry();
+  if (registry.limit <= 0) return;
+  size_t open = registry.open.size();
+  for (auto it = registry.open.end(); open > static_cast<size_t>(registry.limit) && it != registry.open.begin();) {
+    --it;
+    const PathFile* file = *it;
+    if (file->readers_ > 0) continue;
+    ::close(file->fd_);
+    file->fd_ = -1;
+    it = registry.open.erase(it);
+    --open;
+  }
+}
+
+int PathFile::Reopen() const {
+  const int fd = ::open(path_.c_str(), O_RDONLY | O_NOFOLLOW | O_NONBLOCK | O_CLOEXEC);
+  if (fd < 0) {
+    throw DataLossError(fmt::format("target paths file '{}': cannot open it again ({}; it was closed while more "
+                                    "path files than the limit were open)",
+                                    path_, std::strerror(errno)));
+  }
+  struct stat st {};
+  if (::fstat(fd, &st) != 0 || !S_ISREG(st.st_mode) || static_cast<std::uint64_t>(st.st_dev) != device_ ||
+      static_cast<std::uint64_t>(st.st_ino) != inode_) {
+    ::close(fd);
+    throw DataLossError(fmt::format("target paths file '{}': the name is no longer the file the rig loaded (it was "
+                                    "replaced or removed after its descriptor was closed for the limit on open "
+                                    "path files)",
+                                    path_));
+  }
+  return fd;
+}
+
+void PathFile::SetOpenLimit(int limit) {
+  PathFileRegistry& registry = Registry();
+  std::lock_guard lock(registry.mutex);
+  registry.limit = std::max(0, limit);
+  CloseIdle();
+}
+
+int PathFile::OpenCount() {
+  PathFileRegistry& registry = Registry();
+  std::lock_guard lock(registry.mutex);
+  return static_cast<int>(registry.open.size());
+}
+
+int PathFile::Acquire() const {
+  if (!tracked_) return fd_;
+  PathFileRegistry& registry = Registry();
+  std::lock_guard lock(registry.mutex);
+  if (fd_ < 0) {
+    fd_ = Reopen();
+    registry.open.push_front(this);
+    position_ = registry.open.begin();
+  } else {
+    registry.open.splice(registry.open.begin(), registry.open, position_);
+  }
+  ++readers_;
+  CloseIdle();
+  return fd_;
+}
+
+void PathFile::Release() const {
+  if (!tracked_) return;
+  PathFileRegistry& registry = Registry();
+  std::lock_guard lock(registry.mutex);
+  --readers_;
+  CloseIdle();
+}
 
 std::shared_ptr<const PathFile> PathFile::Open(const std::string& path, int opened) {
   const int fd = opened >= 0 ? ::fcntl(opened, F_DUPFD_CLOEXEC, 0)
@@ -35,7 +130,9 @@ std::shared_ptr<const PathFile> PathFile::Open(const std::string& path, int open
     throw Error(ErrorCode::kInvalidInput, fmt::format("'{}' is not a regular file", path));
   }
   // Reads are preads of a regular file: O_NONBLOCK (which only kept the open from waiting) changes nothing.
-  return std::shared_ptr<const PathFile>(new PathFile(fd, path, static_cast<std::int64_t>(st.st_size)));
+  std::shared_ptr<PathFile> file(new PathFile(fd, path, static_cast<std::int64_t>(st.st_size)));
+  file->Track(static_cast<std::uint64_t>(st.st_dev), static_cast<std::uint64_t>(st.st_ino));
+  return file;
 }
 
 std::shared_ptr<PathFile> PathFile::Spool(const std::string& directory) {
@@ -75,14 +172,24 @@ std::int64_t PathFile::Append(const std::string& bytes) {
 }
 
 PathFile::~PathFile() {
+  if (tracked_) {
+    PathFileRegistry& registry = Registry();
+    std::lock_guard lock(registry.mutex);
+    if (fd_ >= 0) registry.open.erase(position_);
+  }
   if (fd_ >= 0) ::close(fd_);
 }
 
 void PathFile::Read(std::int64_t offset, size_t n, void* out) const {
+  const int fd = Acquire();
+  struct Held {
+    const PathFile* file;
+    ~Held() { file->Release(); }
+  } held{this};
   auto* bytes = static_cast<char*>(out);
   size_t done = 0;
   while (done < n) {
-    const ssize_t got = ::pread(fd_, bytes + done, n - done, static_cast<off_t>(offset + done));
+    const ssize_t got = ::pread(fd, bytes + done, n - done, static_cast<off_t>(offset + done));
     if (got < 0 && errno == EINTR) continue;
     if (got <= 0) {
       throw DataLossError(
@@ -191,6 +298,17 @@ void PathField::MoveTo(const std::shared_ptr<PathFile>& spool) {
   *this = Stored(spool, at + static_cast<std::int64_t>(kHeaderBytes), rows_, words_, step_);
 }
 
+void PathField::Load() {
+  if (!stored()) return;
+  PathField field;
+  field.rows_ = rows_;
+  field.words_ = words_;
+  field.step_ = step_;
+  field.high_ = Eigen::Map<const Words>(HighWords(), rows_, 3);
+  if (words_ == 2) field.low_ = Eigen::Map<const Words>(LowWords(), rows_, 3);
+  *this = std::move(field);
+}
+
 bool PathField::ParseHeader(const char* header, double* step, int* words) {
   std::memcpy(step, header, sizeof(double));
   *words = static_cast<std::uint8_t>(header[sizeof(double)]);
@@ -230,5 +348,9 @@ namespace springblend {
 OpenFile::~OpenFile() {
   if (fd_ >= 0) ::close(fd_);
 }
+
+void SetOpenPathFileLimit(int limit) { internal::PathFile::SetOpenLimit(limit); }
+
+int OpenPathFiles() { return internal::PathFile::OpenCount(); }
 
 }  // namespace springblend

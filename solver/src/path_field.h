@@ -17,6 +17,7 @@
 #include <Eigen/Core>
 #include <atomic>
 #include <cstdint>
+#include <list>
 #include <memory>
 #include <mutex>
 #include <string>
@@ -26,6 +27,11 @@ namespace springblend::internal {
 // A read-only file that holds fields' words (a cache file the paths were saved to), read with pread as frames
 // need them, so a rig's resident memory does not grow with its paths. The file must not change while it is open
 // (the server's cache replaces files by renaming, so an open one keeps its contents).
+//
+// A file with a name (not a spool) is one of the process's open path files, of which at most
+// SetOpenPathFileLimit are kept open: past it, the least recently read whose reads are over is closed, and
+// opened again by its name when it is next read, only if the name is still the same file (device and inode;
+// opened without following links or blocking, a regular file), else the read fails with DataLossError.
 class PathFile {
  public:
   // Throws Error(kInvalidInput) naming the file when it cannot be opened or is not a regular file. With
@@ -44,18 +50,36 @@ class PathFile {
   const std::string& path() const { return path_; }
   std::int64_t size() const { return size_.load(); }
   // n bytes at `offset` into out; throws DataLossError (kInternal) naming the file and the offset when they cannot
-  // be read (a file cut short after it was opened).
+  // be read (a file cut short after it was opened), or when a file closed for the limit on open files cannot be
+  // opened again as the same file (removed, or another renamed over its name, since).
   void Read(std::int64_t offset, size_t n, void* out) const;
   // Writes `bytes` at the end of a spool (thread-safe) and returns their offset; throws Error(kInternal) naming
   // the directory when they cannot all be written (a full disk), the file's size then unchanged.
   std::int64_t Append(const std::string& bytes);
+  // springblend::SetOpenPathFileLimit and OpenPathFiles (open_files.h).
+  static void SetOpenLimit(int limit);
+  static int OpenCount();
 
  private:
   PathFile(int fd, std::string path, std::int64_t size) : fd_(fd), path_(std::move(path)), size_(size) {}
-  int fd_ = -1;
+  // A named file joins the open path files (and may close another's descriptor).
+  void Track(std::uint64_t device, std::uint64_t inode);
+  // The descriptor, open (opened again when the limit closed it), held open until Release.
+  int Acquire() const;
+  void Release() const;
+  int Reopen() const;  // throws DataLossError when the name is no longer this file
+  // Closes the least recently read files no read holds until at most the limit are open; the registry's lock held.
+  static void CloseIdle();
+
+  mutable int fd_ = -1;  // a tracked file's is guarded by the registry's lock (closed and reopened)
   std::string path_;
   std::atomic<std::int64_t> size_{0};
   std::mutex append_;
+  bool tracked_ = false;  // a named file, closed and reopened as the limit needs; a spool stays open
+  std::uint64_t device_ = 0, inode_ = 0;
+  // The registry's lock guards these: reads in progress, and its place among the open files when open.
+  mutable int readers_ = 0;
+  mutable std::list<const PathFile*>::iterator position_;
 };
 
 class PathField {
@@ -88,6 +112,9 @@ class PathField {
   // A field held in memory writes its words to `spool` (PathFile::Append) and from then on reads them there
   // (stored()); one already stored, or empty, is left as it is. Throws as Append does, the field then unchanged.
   void MoveTo(const std::shared_ptr<PathFile>& spool);
+  // The reverse: a stored field reads its words into memory and lets its file go (a spool whose paths could not
+  // be kept in a cache file gives its disk space back once no field reads it). Throws as Read does.
+  void Load();
   // Reads one field of `rows` rows at *at; false (and *at unspecified) when the bytes are not one.
   static bool Parse(const std::string& in, size_t* at, Eigen::Index rows, PathField* field);
   // The step and word count that begin a field (AppendTo's first 9 bytes); false when they are not valid.

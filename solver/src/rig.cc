@@ -252,7 +252,18 @@ std::shared_ptr<const Rig> RigBuilder::Build(TriangleMesh rest, std::vector<Targ
         const PrecomputedWriter bytes = [&solved](const std::function<bool(std::string_view)>& write) {
           return internal::WriteTargetPaths(solved, write);
         };
-        if (const std::optional<PrecomputedLocation> at = control.persist(bytes)) {
+        const std::optional<PrecomputedLocation> at = control.persist(bytes);
+        if (!at && path_options.spool) {
+          // Not kept (a full disk, no descriptor left): the spool must not hold its disk space for as long as the
+          // rig lives, unseen in the directory. The samples come back into memory (counted in path_bytes), and
+          // the spool goes with the last field that read it.
+          for (internal::TargetPath& path : internals.paths) {
+            for (internal::PathField& c : path.corrections) c.Load();
+            for (internal::PathField& d : path.tangents) d.Load();
+          }
+          path_options.spool.reset();
+        }
+        if (at) {
           std::string why_not;
           std::optional<std::vector<internal::TargetPath>> stored = parse_file(*at, &why_not);
           if (stored && stored->size() == internals.paths.size()) {

@@ -1,11 +1,14 @@
 // Hardening IV against real server processes: an OK never loses a character (a delete during a build, then an
 // upload), a damaged or missing cache file heals on the next upload, a cache file cut short under a served
 // character drops it rather than fail every frame for good, a FIFO renamed over a cache file during its rebuild
-// is never opened, and the server refuses configurations it cannot honour (a token listed twice).
+// is never opened, and the server refuses configurations it cannot honour (a token listed twice); its descriptors,
+// memory and disk stay bounded (open cache files, sessions' rigs, unauthenticated large requests, a full disk).
 #include <gmock/gmock.h>
 #include <grpcpp/grpcpp.h>
 #include <gtest/gtest.h>
 
+#include <signal.h>
+#include <sys/resource.h>
 #include <sys/stat.h>
 #include <unistd.h>
 
@@ -16,6 +19,7 @@
 #include <filesystem>
 #include <fstream>
 #include <future>
+#include <optional>
 #include <sstream>
 #include <string>
 #include <thread>
@@ -32,6 +36,8 @@ namespace {
 using ::testing::HasSubstr;
 using ::testing::Not;
 using testing::CylinderRig;
+using testing::Metric;
+using testing::RssMb;
 using testing::ServerProcess;
 using testing::SweepRequest;
 using testing::TempDir;
@@ -342,6 +348,233 @@ TEST(HardeningIV, LogsSayWhatTheClientSaw) {
   EXPECT_EQ(Count(text, "access UploadCharacter OK"), 1u) << text;
   EXPECT_EQ(Count(text, "access UploadCharacter DEADLINE_EXCEEDED"), 1u) << text;
   EXPECT_THAT(text, HasSubstr("the deadline passed while the character was being built"));
+}
+
+// A cylinder of one target with sparse paths (built in a fraction of a second) whose paths stay in its cache file;
+// each `variant` (its bending stiffness) is a character of its own.
+v1::Character UploadSmallCylinder(Client& client, int variant) {
+  v1::BuildOptions options;
+  options.set_bending_stiffness(1.0 + 0.25 * variant);
+  options.set_path_intervals(4);
+  options.set_path_max_samples(8);
+  return client.Upload(LoadMesh(testing::DataPath("cylinder/cylinder.obj")),
+                       {LoadMesh(testing::DataPath("cylinder/poses-2_cylinder-1.obj"))}, options,
+                       "cylinder " + std::to_string(variant));
+}
+
+// What a process's descriptors point to (symbolic links' targets under /proc/PID/fd).
+std::vector<std::string> OpenFiles(pid_t pid) {
+  std::vector<std::string> targets;
+  std::error_code ec;
+  for (const auto& fd : std::filesystem::directory_iterator("/proc/" + std::to_string(pid) + "/fd", ec)) {
+    std::error_code gone;
+    const auto target = std::filesystem::read_symlink(fd.path(), gone);
+    if (!gone) targets.push_back(target.string());
+  }
+  return targets;
+}
+
+size_t CountOpen(pid_t pid, const std::function<bool(const std::string&)>& which) {
+  size_t n = 0;
+  for (const std::string& target : OpenFiles(pid)) n += which(target) ? 1 : 0;
+  return n;
+}
+
+bool EndsWith(const std::string& text, const std::string& end) {
+  return text.size() >= end.size() && text.compare(text.size() - end.size(), end.size(), end) == 0;
+}
+
+// Item 6: every character in memory kept its cache file open, so descriptors grew with characters; past the
+// process's limit cache files could not be written (uploads answered "not persisted") and connections failed. At
+// most --max-open-cache-files stay open; the others are opened again when a frame reads them.
+TEST(HardeningIV, OpenCacheFilesAreBoundedAndReopenedWhenRead) {
+  TempDir dir;
+  const std::string cache = dir.File("cache");
+  // The descriptors a started server holds, then a limit with room for 6 more: 10 characters' files held open
+  // would not fit; 2 (the bound), an upload's own files (its spool and temporary) and a connection do.
+  size_t baseline = 0;
+  {
+    ServerProcess probe(cache, {"--workers", "1"});
+    ASSERT_FALSE(probe.address().empty());
+    Client client({probe.address(), Seconds(60)});
+    client.List();
+    baseline = OpenFiles(probe.pid()).size();
+  }
+  const rlim_t limit = baseline + 6;
+  ServerProcess server(cache, {"--workers", "1", "--max-open-cache-files", "2"}, dir.File("server.log"), [limit] {
+    const struct rlimit files = {limit, limit};
+    setrlimit(RLIMIT_NOFILE, &files);
+  });
+  ASSERT_FALSE(server.address().empty());
+  const auto cache_files = [&](const std::string& target) {
+    return target.rfind(cache, 0) == 0 && EndsWith(target, ".sbchar");
+  };
+  Client client({server.address(), Seconds(120)});
+  std::vector<std::string> ids;
+  for (int variant = 0; variant < 10; ++variant) {
+    const v1::Character c = UploadSmallCylinder(client, variant);
+    for (const std::string& note : c.summary().notes()) {
+      EXPECT_THAT(note, Not(HasSubstr("not persisted"))) << "upload " << variant;
+    }
+    EXPECT_TRUE(std::filesystem::is_regular_file(CacheFile(cache, c.id()))) << "upload " << variant;
+    EXPECT_LE(CountOpen(server.pid(), cache_files), 2u) << "after upload " << variant;
+    ids.push_back(c.id());
+  }
+  // Every character is still in memory and solves, its file opened again as its frames read it; twice round.
+  for (int round = 0; round < 2; ++round) {
+    for (const std::string& id : ids) {
+      const Sweep sweep = Solve(server.address(), id, {0.9});
+      EXPECT_EQ(sweep.code, 0) << sweep.message;
+      EXPECT_EQ(sweep.positions.size(), 3u);
+      EXPECT_LE(CountOpen(server.pid(), cache_files), 2u);
+    }
+  }
+  EXPECT_EQ(client.List().size(), ids.size());
+  EXPECT_THAT(ReadText(dir.File("server.log")), Not(HasSubstr("not written")));
+}
+
+// Item 7: with a budget for one character, sessions alternating between two rebuilt the character each time (the
+// other session's copy was evicted, though that session still held it), and each session's copy was outside the
+// budget. A character an open session holds stays in the store, counted, and the next session shares it.
+TEST(HardeningIV, SessionsShareOneCountedCopyOfTheirCharacter) {
+  TempDir dir;
+  ServerProcess server(dir.File("cache"),
+                       {"--workers", "2", "--memory-budget-mb", "1", "--metrics", "127.0.0.1:0"});
+  ASSERT_FALSE(server.address().empty());
+  Client client({server.address(), Seconds(120)});
+  const std::array<std::string, 2> ids = {UploadSmallCylinder(client, 0).id(), UploadSmallCylinder(client, 1).id()};
+  const auto metric = [&](const std::string& name) { return Metric(server.metrics_port(), name); };
+  ASSERT_EQ(metric("springblend_cache_characters"), 1) << "the budget holds one character";
+  const double rebuilds = metric("springblend_cache_rebuilds_from_disk_total");
+  // Sessions opened in turn, A, B, A, B, A, B, each answered once and kept open.
+  std::vector<std::unique_ptr<InteractiveSession>> sessions;
+  for (int i = 0; i < 6; ++i) {
+    v1::InteractiveStart start;
+    start.set_character_id(ids[i % 2]);
+    sessions.push_back(client.StartInteractive(start));
+    v1::FrameRequest frame;
+    frame.add_weights(0.3 + 0.1 * i);
+    ASSERT_TRUE(sessions.back()->Send(frame));
+    v1::SolvedFrame answer;
+    ASSERT_TRUE(sessions.back()->Next(&answer)) << "session " << i;
+  }
+  // The first session of each character rebuilt it (the budget had evicted it); the others shared it.
+  EXPECT_EQ(metric("springblend_cache_rebuilds_from_disk_total") - rebuilds, 2);
+  EXPECT_EQ(metric("springblend_cache_characters"), 2) << "a character held by a session is not counted";
+  for (auto& session : sessions) {
+    session->Close();
+    v1::SolvedFrame answer;
+    while (session->Next(&answer)) {
+    }
+    EXPECT_NO_THROW(session->Finish());
+  }
+  sessions.clear();
+  // Once no session holds them (their calls end on the server a moment after the client sees it), the budget
+  // applies again at the next lookup.
+  const auto until = Clock::now() + Seconds(10);
+  do {
+    EXPECT_EQ(Solve(server.address(), ids[0], {0.9}).code, 0);
+  } while (metric("springblend_cache_characters") != 1 && Clock::now() < until);
+  EXPECT_EQ(metric("springblend_cache_characters"), 1);
+}
+
+// Item 8: with tokens on, every method took 64 MiB messages, received whole before the token was checked, and the
+// memory stayed (RSS 26 to 360 MiB from eight unauthenticated requests). Each is refused, the metadata methods
+// refuse requests over their own limit, and the memory is given back.
+TEST(HardeningIV, LargeRequestsAreRefusedAndTheirMemoryGivenBack) {
+  TempDir dir;
+  ServerProcess server(dir.File("cache"), {"--workers", "1", "--token", "s3cret"});
+  ASSERT_FALSE(server.address().empty());
+  // Raw stubs: the client library would also send the id as its routing header.
+  const auto get = [&](const std::string& id, const std::string& token) {
+    auto stub = v1::CharacterService::NewStub(grpc::CreateChannel(server.address(), grpc::InsecureChannelCredentials()));
+    grpc::ClientContext context;
+    context.set_deadline(std::chrono::system_clock::now() + Seconds(60));
+    if (!token.empty()) context.AddMetadata("authorization", "Bearer " + token);
+    v1::GetCharacterRequest request;
+    request.set_id(id);
+    v1::Character response;
+    return stub->GetCharacter(&context, request, &response);
+  };
+  const auto solve = [&](const std::string& id) {
+    auto stub = v1::SolveService::NewStub(grpc::CreateChannel(server.address(), grpc::InsecureChannelCredentials()));
+    grpc::ClientContext context;
+    context.set_deadline(std::chrono::system_clock::now() + Seconds(60));
+    v1::SolveRequest request;
+    request.set_character_id(id);
+    auto reader = stub->Solve(&context, request);
+    v1::SolvedFrame frame;
+    while (reader->Read(&frame)) {
+    }
+    return reader->Finish();
+  };
+  EXPECT_EQ(get("0", "s3cret").error_code(), grpc::StatusCode::INVALID_ARGUMENT);
+  const double baseline = RssMb(server.pid());
+  // Eight unauthenticated requests of 48 MiB at once, Get and Solve.
+  const std::string large(48 << 20, 'x');
+  std::vector<std::future<grpc::Status>> calls;
+  for (int i = 0; i < 8; ++i) {
+    calls.push_back(std::async(std::launch::async, [&, i] { return i % 2 == 0 ? get(large, "") : solve(large); }));
+  }
+  for (auto& call : calls) EXPECT_EQ(call.get().error_code(), grpc::StatusCode::UNAUTHENTICATED);
+  const double after = RssMb(server.pid());
+  // Given back within a few seconds (a liveness bound): near where it was.
+  const auto until = Clock::now() + Seconds(5);
+  double now = RssMb(server.pid());
+  while (now > baseline + 40 && Clock::now() < until) {
+    std::this_thread::sleep_for(std::chrono::milliseconds(100));
+    now = RssMb(server.pid());
+  }
+  EXPECT_LT(now, baseline + 40) << "RSS " << baseline << " MiB before, " << after << " MiB after the requests";
+  std::printf("RSS %.1f MiB before, %.1f MiB just after eight 48 MiB requests, %.1f MiB after\n", baseline, after, now);
+  // A metadata request over its method's limit, with a token: refused before it is parsed, naming the limit.
+  const grpc::Status over = get(std::string(2 << 20, 'a'), "s3cret");
+  EXPECT_EQ(over.error_code(), grpc::StatusCode::RESOURCE_EXHAUSTED) << over.error_message();
+  EXPECT_THAT(over.error_message(), HasSubstr("over this method's limit of 1048576 bytes"));
+}
+
+// Item 14: on a full disk, the build's spool (a file without a name in the cache directory) kept the paths' disk
+// space for as long as the character lived, unseen in the directory. When the cache file cannot be written, the
+// paths come back into memory and the spool goes; the answer says the character was not persisted, and it solves
+// as it would have. A full disk is made with RLIMIT_FSIZE (writes past it fail with EFBIG, SIGXFSZ ignored): room
+// for the spool, not for the cache file.
+TEST(HardeningIV, ACacheFileThatCannotBeWrittenLeavesNoSpoolBehind) {
+  TempDir dir;
+  std::string id;
+  std::uintmax_t file_size = 0;
+  Sweep expected;
+  {
+    ServerProcess probe(dir.File("probe"), {"--workers", "1"});
+    ASSERT_FALSE(probe.address().empty());
+    Client client({probe.address(), Seconds(60)});
+    id = UploadSmallCylinder(client, 0).id();
+    file_size = std::filesystem::file_size(CacheFile(dir.File("probe"), id));
+    expected = Solve(probe.address(), id, {0.9});
+    ASSERT_EQ(expected.code, 0) << expected.message;
+  }
+  const std::string cache = dir.File("cache");
+  const rlim_t largest = file_size - 1;
+  ServerProcess server(cache, {"--workers", "1"}, "", [largest] {
+    signal(SIGXFSZ, SIG_IGN);
+    const struct rlimit size = {largest, largest};
+    setrlimit(RLIMIT_FSIZE, &size);
+  });
+  ASSERT_FALSE(server.address().empty());
+  Client client({server.address(), Seconds(60)});
+  const v1::Character c = UploadSmallCylinder(client, 0);
+  ASSERT_EQ(c.id(), id);
+  std::string notes;
+  for (const std::string& note : c.summary().notes()) notes += note + "\n";
+  EXPECT_THAT(notes, HasSubstr("not persisted"));
+  EXPECT_FALSE(std::filesystem::exists(CacheFile(cache, id)));
+  // No file of the cache directory without a name is left open (the spool, a temporary).
+  const auto unnamed = [&](const std::string& target) {
+    return target.rfind(cache, 0) == 0 && target.find("(deleted)") != std::string::npos;
+  };
+  EXPECT_EQ(CountOpen(server.pid(), unnamed), 0u);
+  const Sweep sweep = Solve(server.address(), id, {0.9});
+  EXPECT_EQ(sweep.code, 0) << sweep.message;
+  EXPECT_TRUE(sweep.positions == expected.positions);
 }
 
 }  // namespace

@@ -267,11 +267,7 @@ TEST_F(Float32Test, ACombinationsProductPassesTheWeightGuard) {
 
 using Clock = std::chrono::steady_clock;
 
-double Metric(int port, const std::string& name) {
-  const std::string text = testing::HttpGet(port, "/metrics");
-  const auto at = text.find("\n" + name + " ");
-  return at == std::string::npos ? -1.0 : std::stod(text.substr(at + name.size() + 2));
-}
+using testing::Metric;
 
 // Waits (a liveness bound, not a timing) until `holds` says yes of the metric.
 bool WaitForMetric(int port, const std::string& name, const std::function<bool(double)>& holds) {
@@ -326,7 +322,7 @@ class RequestMemoryTest : public ::testing::Test {
     delete cache_;
     delete character_;
   }
-  static double Metric(const std::string& name) { return springblend::Metric(server_->metrics_port(), name); }
+  static double Metric(const std::string& name) { return testing::Metric(server_->metrics_port(), name); }
   static void ExpectServed(const std::string& when) {
     Client client({server_->address(), std::chrono::seconds(20)});
     int frames = 0;

@@ -34,20 +34,7 @@ using testing::SweepRequest;
 using testing::TempDir;
 using Clock = std::chrono::steady_clock;
 
-// Resident memory of a process, in MiB (0 when it is gone).
-double RssMb(pid_t pid) {
-  std::ifstream status("/proc/" + std::to_string(pid) + "/status");
-  std::string key;
-  while (status >> key) {
-    if (key == "VmRSS:") {
-      double kb = 0;
-      status >> kb;
-      return kb / 1024.0;
-    }
-    status.ignore(1 << 12, '\n');
-  }
-  return 0.0;
-}
+using testing::RssMb;
 
 // Samples a process's RSS every 100 ms until stopped; keeps every sample.
 class RssSampler {

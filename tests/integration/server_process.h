@@ -13,6 +13,7 @@
 
 #include <array>
 #include <cstdio>
+#include <fstream>
 #include <functional>
 #include <string>
 #include <vector>
@@ -23,14 +24,17 @@
 namespace springblend::testing {
 
 // A server process; stopped with SIGTERM (the graceful path) when the object goes. Its log (stderr) goes to
-// log_file when one is given.
+// log_file when one is given; `in_child` runs in the child before the server is started (limits to set with
+// setrlimit, signals to ignore: both last across exec).
 class ServerProcess {
  public:
-  ServerProcess(const std::string& cache_dir, std::vector<std::string> extra = {}, const std::string& log_file = "") {
+  ServerProcess(const std::string& cache_dir, std::vector<std::string> extra = {}, const std::string& log_file = "",
+                const std::function<void()>& in_child = {}) {
     int out[2];
     EXPECT_EQ(pipe(out), 0);
     pid_ = fork();
     if (pid_ == 0) {
+      if (in_child) in_child();
       dup2(out[1], STDOUT_FILENO);
       close(out[0]);
       if (!log_file.empty()) {
@@ -172,6 +176,28 @@ inline std::string HttpGet(int port, const std::string& path) {
   }
   close(fd);
   return response;
+}
+
+// A metric's value from the server's /metrics on 127.0.0.1:port; -1 when it is not there.
+inline double Metric(int port, const std::string& name) {
+  const std::string text = HttpGet(port, "/metrics");
+  const auto at = text.find("\n" + name + " ");
+  return at == std::string::npos ? -1.0 : std::stod(text.substr(at + name.size() + 2));
+}
+
+// Resident memory of a process, in MiB (0 when it is gone).
+inline double RssMb(pid_t pid) {
+  std::ifstream status("/proc/" + std::to_string(pid) + "/status");
+  std::string key;
+  while (status >> key) {
+    if (key == "VmRSS:") {
+      double kb = 0;
+      status >> kb;
+      return kb / 1024.0;
+    }
+    status.ignore(1 << 12, '\n');
+  }
+  return 0.0;
 }
 
 }  // namespace springblend::testing

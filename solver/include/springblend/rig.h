@@ -259,7 +259,8 @@ struct RigBuildControl {
   const std::string* precomputed = nullptr;
   // The same bytes in a file instead (when precomputed is null). The paths' samples then stay in the file, read
   // as frames need them (a few per moved target), so the rig's resident memory does not grow with its expressions
-  // (RigSummary::path_bytes, path_file_bytes). The file is opened once; it must not be changed in place while the
+  // (RigSummary::path_bytes, path_file_bytes). The file is opened once (closed and opened again by its name only
+  // past SetOpenPathFileLimit, springblend/open_files.h); it must not be changed in place while the
   // rig lives (replace it by renaming, as the server's cache does). A file that cannot be opened or read is
   // treated as bytes that do not fit: the paths are solved and a note says why.
   std::optional<PrecomputedLocation> precomputed_file;
@@ -271,8 +272,9 @@ struct RigBuildControl {
   // Called once the paths are solved (not when loaded) with a writer of Rig::SavePrecomputed's bytes, which it
   // tells in consecutive pieces to its argument (stopping when that returns false; it returns false then): a
   // caller that keeps them in a file (the server's cache file) writes them there and says where; the rig then
-  // leaves its samples in that file as with precomputed_file. Nullopt (or no callback) keeps them where they are
-  // (in the spool, else in memory).
+  // leaves its samples in that file as with precomputed_file. No callback keeps them where they are (in the spool,
+  // else in memory); nullopt from it (the file could not be written: a full disk) reads spooled samples back into
+  // memory and lets the spool go, so its disk space is not held, unseen, for as long as the rig lives.
   std::function<std::optional<PrecomputedLocation>(const PrecomputedWriter& bytes)> persist;
 };
 
