@@ -41,7 +41,7 @@ build/bench/bench/springblend-paths-bench --out bench-results --shared "$shared"
 build/bench/bench/springblend-paths-bench --rows face-52 --frames 5 --targets 1 --no-reference --spool \
   --out bench-results/face-52 --shared "$shared" || status=$?
 # A face driven by a captured take: the shared face's 55 expressions uploaded as a user would (the build's time
-# reported; about 13 minutes on two cores, its paths kept in bench-results/take for reruns), 120 consecutive frames
+# reported; about 4 minutes on two cores, its paths kept in bench-results/take for reruns), 120 consecutive frames
 # of the shared Live Link Face take solved with the default (superposed) mix, and every sixth of them with the
 # paper's blend of rest lengths (seconds a frame): ms, Newton iterations, pops, distance from the linear blend,
 # certified minima; the worst frame of each as OBJ beside its linear blend.

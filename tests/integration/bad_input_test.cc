@@ -1,6 +1,7 @@
 // Every malformed request we could think of, sent through raw gRPC stubs (the client library would catch some
 // of them first): each must get the right status code and a message naming what is wrong, while a healthy
 // client solving at the same time keeps getting the same correct frames and no cached character changes.
+#include <fmt/format.h>
 #include <gmock/gmock.h>
 #include <google/protobuf/unknown_field_set.h>
 #include <grpcpp/grpcpp.h>
@@ -253,7 +254,7 @@ class BadInputTest : public ::testing::Test {
     upload("4 billion faces", [](Upload& u) { u.header.set_face_count(4'000'000'000u); },
            StatusCode::RESOURCE_EXHAUSTED, "over the limit");
     upload("5000 targets", [](Upload& u) {
-      for (int t = 0; t < 5000; ++t) u.header.add_target_names("t" + std::to_string(t));
+      for (int t = 0; t < 5000; ++t) u.header.add_target_names(fmt::format("t{}", t));
     }, StatusCode::RESOURCE_EXHAUSTED, "over the limit of 1000");
     upload("a fixed vertex out of range", [](Upload& u) { u.header.mutable_options()->add_fixed_vertices(1u << 30); },
            kInvalid, "options.fixed_vertices");

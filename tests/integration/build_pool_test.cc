@@ -51,6 +51,8 @@ class FaceUpload {
           Client client({address, timeout});
           v1::BuildOptions options;
           options.set_bending_stiffness(bending);  // another character per value
+          // The densest paths: a build of a minute or more, which must outlast its client's deadline.
+          options.set_path_intervals(128);
           try {
             client.Upload(face.neutral, {face.jaw}, options, "face", [this](const std::string& id,
                                                                             const v1::BuildProgress& p) {

@@ -2,6 +2,7 @@
 // oversized colliders, clients that stop reading or never send, uploads that declare more than they send,
 // deletes racing rebuilds, malformed bytes, silent metrics connections). Each test checks the hostile request
 // gets its bounded answer, and that a normal client gets the same correct frames during and after.
+#include <fmt/format.h>
 #include <gmock/gmock.h>
 #include <grpcpp/generic/generic_stub.h>
 #include <grpcpp/grpcpp.h>
@@ -244,7 +245,7 @@ TEST_F(HostileTest, ExpensiveMeshCollidersAreRefusedByTheirCaps) {
   EXPECT_EQ(cone.error_code(), grpc::StatusCode::INVALID_ARGUMENT);
   EXPECT_THAT(cone.error_message(), HasSubstr("valence"));
   std::string polygon = DoubleCone(100) + "f";
-  for (int i = 3; i < 103; ++i) polygon += " " + std::to_string(i);
+  for (int i = 3; i < 103; ++i) polygon += fmt::format(" {}", i);
   for (int i = 0; i < 400; ++i) polygon += " 1";
   const grpc::Status corners = SendSolve(*solves_, WithMeshCollider(Normal(), polygon + "\n"), 15);
   EXPECT_EQ(corners.error_code(), grpc::StatusCode::INVALID_ARGUMENT);
