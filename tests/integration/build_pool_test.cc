@@ -40,7 +40,10 @@ double Metric(int port, const std::string& name) {
 
 struct Face {
   TriangleMesh neutral = LoadMesh(DataPath("face/generic_neutral_mesh.obj"));
-  TriangleMesh jaw = LoadMesh(DataPath("face/jawOpen.obj"));
+  std::vector<TriangleMesh> expressions = {
+      LoadMesh(DataPath("face/jawOpen.obj")), LoadMesh(DataPath("face/mouthClose.obj")),
+      LoadMesh(DataPath("face/mouthFunnel.obj")), LoadMesh(DataPath("face/mouthSmile_L.obj")),
+      LoadMesh(DataPath("face/mouthStretch_L.obj"))};
 };
 
 // An upload of the face on its own thread, with a client deadline; records the id and the progress it saw.
@@ -51,10 +54,11 @@ class FaceUpload {
           Client client({address, timeout});
           v1::BuildOptions options;
           options.set_bending_stiffness(bending);  // another character per value
-          // The densest paths: a build of a minute or more, which must outlast its client's deadline.
+          // Five expressions with the densest paths: a build of minutes, which must outlast its client's deadline
+          // however fast the paths become.
           options.set_path_intervals(128);
           try {
-            client.Upload(face.neutral, {face.jaw}, options, "face", [this](const std::string& id,
+            client.Upload(face.neutral, face.expressions, options, "face", [this](const std::string& id,
                                                                             const v1::BuildProgress& p) {
               std::lock_guard lock(mutex_);
               id_ = id;
