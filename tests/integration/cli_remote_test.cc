@@ -188,14 +188,18 @@ TEST_F(CliRemoteTest, ASolveOverItsTimeoutSaysHowManyFramesArrived) {
   EXPECT_EQ(RunCli("health" + remote, dir_).exit_code, 0);
 }
 
-// The face's build takes minutes: the upload prints its progress on stderr as it goes, and, given --timeout,
-// gives up on time with the call named (the server then stops the build nobody waits for).
+// The face's build takes minutes (its five expressions with the densest paths): the upload prints its progress on
+// stderr as it goes, and, given --timeout, gives up on time with the call named (the server then stops the build
+// nobody waits for).
 TEST_F(CliRemoteTest, UploadShowsTheBuildsProgressAndHonoursItsTimeout) {
   ServerProcess server(cache_.path().string(), {"--metrics", "127.0.0.1:0"});
   ASSERT_FALSE(server.address().empty());
   const std::string remote = " --server " + server.address();
-  const std::string face = " --rest " + DataPath("face/generic_neutral_mesh.obj") + " --target " +
-                           DataPath("face/jawOpen.obj");
+  std::string face = " --path-intervals 128 --rest " + DataPath("face/generic_neutral_mesh.obj") + " --target";
+  for (const char* name : {"jawOpen", "mouthClose", "mouthFunnel", "mouthSmile_L", "mouthStretch_L"}) {
+    face += ' ';
+    face += DataPath(std::string("face/") + name + ".obj");
+  }
   CliRun upload;
   const double seconds = SecondsOf([&] { upload = RunCli("upload" + face + " --timeout 8" + remote, dir_); });
   EXPECT_EQ(upload.exit_code, 4) << upload.stderr_text;

@@ -22,12 +22,18 @@ FACE = testing.DATA / "face"
 STAGES = {"queued", "springs", "interior", "analysis", "placement", "paths", "done"}
 
 
+# The bundled face's five expressions, uploaded with the densest paths (PATH_INTERVALS): a build of minutes, which
+# outlasts the tests' deadlines however fast paths become.
+EXPRESSIONS = ["jawOpen", "mouthClose", "mouthFunnel", "mouthSmile_L", "mouthStretch_L"]
+PATH_INTERVALS = 128
+
+
 def face():
-    """(rest, faces, {"jawOpen": positions}), rounded to float32 as the CLI's OBJ reader does (same id)."""
+    """(rest, faces, {name: positions}), rounded to float32 as the CLI's OBJ reader does (same id)."""
     rest, faces = testing.load_obj(FACE / "generic_neutral_mesh.obj")
-    jaw = testing.load_obj(FACE / "jawOpen.obj")[0]
-    return (rest.astype(np.float32).astype(np.float64), faces,
-            {"jawOpen": jaw.astype(np.float32).astype(np.float64)})
+    targets = {name: testing.load_obj(FACE / f"{name}.obj")[0].astype(np.float32).astype(np.float64)
+               for name in EXPRESSIONS}
+    return rest.astype(np.float32).astype(np.float64), faces, targets
 
 
 class UploadProgressTest(unittest.TestCase):
@@ -45,7 +51,7 @@ class UploadProgressTest(unittest.TestCase):
         start = time.monotonic()
         with springblend.Client(self.server.address, timeout=8) as client:
             with self.assertRaises(springblend.SpringblendError) as raised:
-                client.upload(self.rest, self.faces, self.targets, name="face",
+                client.upload(self.rest, self.faces, self.targets, name="face", path_intervals=PATH_INTERVALS,
                               on_progress=lambda i, p: calls.append((time.monotonic() - start, i, p)))
         took = time.monotonic() - start
         self.assertEqual(raised.exception.code, grpc.StatusCode.DEADLINE_EXCEEDED)
@@ -60,7 +66,7 @@ class UploadProgressTest(unittest.TestCase):
         self.assertRegex(character_id, "^[0-9a-f]{64}$")
         for _, _, progress in calls:
             self.assertIn(progress.stage, STAGES)
-        self.assertEqual(calls[-1][2].targets, 1)  # jawOpen's path is being built by then
+        self.assertEqual(calls[-1][2].targets, len(EXPRESSIONS))  # their paths are being built by then
         gaps = np.diff([t for t, _, _ in calls])
         self.assertTrue(np.all((gaps > 0.3) & (gaps < 1.5)), gaps)
 
@@ -68,7 +74,8 @@ class UploadProgressTest(unittest.TestCase):
         if os.environ.get("SPRINGBLEND_CLI"):
             result = subprocess.run(
                 [testing.required_path("SPRINGBLEND_CLI"), "upload", "--server", self.server.address, "--timeout",
-                 "3", "--rest", str(FACE / "generic_neutral_mesh.obj"), "--target", str(FACE / "jawOpen.obj")],
+                 "3", "--path-intervals", str(PATH_INTERVALS), "--rest", str(FACE / "generic_neutral_mesh.obj"),
+                 "--target", *[str(FACE / f"{name}.obj") for name in EXPRESSIONS]],
                 capture_output=True, text=True, timeout=30)
             self.assertNotEqual(result.returncode, 0)
             shown = re.findall(r"building ([0-9a-f]{12})", result.stderr)
@@ -88,7 +95,8 @@ class UploadProgressTest(unittest.TestCase):
         start = time.monotonic()
         with springblend.Client(self.server.address, timeout=60) as client:
             with self.assertRaises(Stop):
-                client.upload(self.rest, self.faces, self.targets, name="face", on_progress=stop)
+                client.upload(self.rest, self.faces, self.targets, name="face", path_intervals=PATH_INTERVALS,
+                              on_progress=stop)
             self.assertLess(time.monotonic() - start, 5)
             # The server learns of the cancel: the build stops and nothing is kept (within about a second).
             deadline = time.monotonic() + 5
