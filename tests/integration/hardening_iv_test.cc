@@ -525,7 +525,11 @@ TEST(HardeningIV, LargeRequestsAreRefusedAndTheirMemoryGivenBack) {
     std::this_thread::sleep_for(std::chrono::milliseconds(100));
     now = RssMb(server.pid());
   }
+#if !defined(__SANITIZE_ADDRESS__)
+  // (Under ASan freed memory goes to its quarantine, which malloc_trim cannot reach: the bound holds only in the
+  // uninstrumented build, which the release stage runs.)
   EXPECT_LT(now, baseline + 40) << "RSS " << baseline << " MiB before, " << after << " MiB after the requests";
+#endif
   std::printf("RSS %.1f MiB before, %.1f MiB just after eight 48 MiB requests, %.1f MiB after\n", baseline, after, now);
   // A metadata request over its method's limit, with a token: refused before it is parsed, naming the limit.
   const grpc::Status over = get(std::string(2 << 20, 'a'), "s3cret");
