@@ -102,7 +102,7 @@ struct RigOptions {
   // outside [-path_extension, 1 + path_extension] starts from it and is solved in full.
   // Range: intervals [1, 256], extension [0, 2], tolerance (0, 0.1], max samples [4, 1024].
   // The defaults make a 55-expression face (6,706 vertices, a shell of 13,412) ready in about 4 minutes on 2
-  // cores; 32 steps per unit, 0.25 beyond [0, 1] and 1e-6 took 13 (docs/benchmark.md, Uploads).
+  // cores; 32 steps per unit, 0.25 beyond [0, 1] and 1e-6 took 13 (docs/benchmark.md, Captured takes: the upload).
   bool target_paths = true;
   int path_intervals = 16;
   double path_extension = 0.0;
